@@ -1,0 +1,206 @@
+//! Camera calibration: pinhole intrinsics, radial-tangential distortion and the camera's mount
+//! on the robot, loaded from a TOML file (see `calib/c310.toml` for the format).
+//!
+//! Frames: the *optical* frame has x right, y down, z forward (pixel u grows with x, v with y).
+//! The *robot* frame is REP-103 (x forward, y left, z up) with its origin on the floor between
+//! the wheels. The mount gives `robot_from_camera`: the camera centre in robot coordinates and a
+//! pitch (positive looks down).
+
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+#[derive(Debug, thiserror::Error)]
+pub enum CalibError {
+    #[error("cannot read calibration file {path}: {source} (pass --calib FILE; the default is calib/c310.toml)")]
+    Read { path: String, source: std::io::Error },
+    #[error("calibration file {path} is not valid: {message}")]
+    Parse { path: String, message: String },
+    #[error("calibration file {path}: {field} {problem}")]
+    Invalid { path: String, field: &'static str, problem: String },
+}
+
+/// Pinhole intrinsics for one image size, in pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Intrinsics {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// OpenCV "plumb_bob" coefficients `[k1, k2, p1, p2, k3]`.
+    #[serde(default)]
+    pub distortion: [f64; 5],
+}
+
+/// Where the camera sits on the robot (`robot_from_camera`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Mount {
+    /// Camera centre ahead of the robot origin, m.
+    pub x_m: f64,
+    /// Camera centre left of the robot origin, m.
+    #[serde(default)]
+    pub y_m: f64,
+    /// Camera centre above the floor, m.
+    pub z_m: f64,
+    /// Downward tilt of the optical axis, rad (0 = horizontal).
+    #[serde(default)]
+    pub pitch_rad: f64,
+}
+
+/// A camera calibration: what a file in `calib/` holds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Calibration {
+    /// Free text: which camera, and whether the numbers are nominal or measured.
+    #[serde(default)]
+    pub model: String,
+    pub camera: Intrinsics,
+    pub mount: Mount,
+}
+
+impl Calibration {
+    /// Nominal Logitech C310 at 1280×720 (the same numbers as `calib/c310.toml`).
+    pub fn nominal_c310() -> Self {
+        Self {
+            model: "Logitech C310 (nominal, from the 60° diagonal field of view)".into(),
+            camera: Intrinsics {
+                width: 1280,
+                height: 720,
+                fx: 1272.0,
+                fy: 1272.0,
+                cx: 639.5,
+                cy: 359.5,
+                distortion: [0.0; 5],
+            },
+            mount: Mount { x_m: 0.10, y_m: 0.0, z_m: 0.40, pitch_rad: 0.0 },
+        }
+    }
+
+    /// Loads and validates a calibration file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, CalibError> {
+        let path = path.as_ref();
+        let name = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| CalibError::Read { path: name.clone(), source })?;
+        Self::from_toml(&text, &name)
+    }
+
+    /// Parses and validates calibration TOML; `origin` names the source in errors.
+    pub fn from_toml(text: &str, origin: &str) -> Result<Self, CalibError> {
+        let calib: Self =
+            toml::from_str(text).map_err(|e| CalibError::Parse { path: origin.into(), message: e.to_string() })?;
+        calib.validate(origin)?;
+        Ok(calib)
+    }
+
+    fn validate(&self, origin: &str) -> Result<(), CalibError> {
+        let c = &self.camera;
+        let bad =
+            |field, problem: &str| Err(CalibError::Invalid { path: origin.into(), field, problem: problem.into() });
+        if c.width == 0 || c.height == 0 {
+            return bad("camera.width/height", "must be positive");
+        }
+        if !(c.fx.is_finite() && c.fx > 0.0 && c.fy.is_finite() && c.fy > 0.0) {
+            return bad("camera.fx/fy", "must be positive focal lengths in pixels");
+        }
+        if !(c.cx.is_finite()
+            && c.cy.is_finite()
+            && c.cx > 0.0
+            && c.cy > 0.0
+            && c.cx < c.width as f64
+            && c.cy < c.height as f64)
+        {
+            return bad("camera.cx/cy", "must lie inside the image");
+        }
+        if c.distortion.iter().any(|k| !k.is_finite()) {
+            return bad("camera.distortion", "must be finite numbers");
+        }
+        let m = &self.mount;
+        if !(m.x_m.is_finite() && m.y_m.is_finite() && m.z_m.is_finite() && m.z_m > 0.0) {
+            return bad("mount", "x_m/y_m must be finite and z_m (height above the floor) positive");
+        }
+        if !(m.pitch_rad.is_finite() && m.pitch_rad.abs() < 1.2) {
+            return bad("mount.pitch_rad", "must be within ±1.2 rad");
+        }
+        Ok(())
+    }
+
+    /// The same camera at another image size (intrinsics scaled, e.g. a 640×360 stream of a
+    /// camera calibrated at 1280×720). The aspect ratio may change only through cropping-free
+    /// scaling, which is what UVC cameras do for their listed sizes.
+    pub fn scaled_to(&self, width: u32, height: u32) -> Self {
+        let sx = width as f64 / self.camera.width as f64;
+        let sy = height as f64 / self.camera.height as f64;
+        let c = self.camera;
+        let mut out = self.clone();
+        out.camera = Intrinsics {
+            width,
+            height,
+            fx: c.fx * sx,
+            fy: c.fy * sy,
+            cx: (c.cx + 0.5) * sx - 0.5,
+            cy: (c.cy + 0.5) * sy - 0.5,
+            distortion: c.distortion,
+        };
+        out
+    }
+
+    /// Projects a point in the optical frame (x right, y down, z forward, m) to pixel (u, v),
+    /// ignoring distortion; `None` behind the camera.
+    pub fn project(&self, p: [f64; 3]) -> Option<[f64; 2]> {
+        if p[2] <= 1e-9 {
+            return None;
+        }
+        let c = &self.camera;
+        Some([c.fx * p[0] / p[2] + c.cx, c.fy * p[1] / p[2] + c.cy])
+    }
+
+    /// The viewing ray through pixel (u, v) in the optical frame, normalised to z = 1.
+    pub fn ray(&self, u: f64, v: f64) -> [f64; 3] {
+        let c = &self.camera;
+        [(u - c.cx) / c.fx, (v - c.cy) / c.fy, 1.0]
+    }
+
+    /// Horizontal bearing of pixel column `u` in the robot frame, rad (positive = left).
+    pub fn bearing_of_column(&self, u: f64) -> f64 {
+        -((u - self.camera.cx) / self.camera.fx).atan()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_file_matches_nominal() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../calib/c310.toml");
+        assert_eq!(Calibration::load(path).unwrap(), Calibration::nominal_c310());
+    }
+
+    #[test]
+    fn projection_round_trips_through_ray() {
+        let c = Calibration::nominal_c310();
+        let p = [0.3, -0.2, 2.5];
+        let [u, v] = c.project(p).unwrap();
+        let r = c.ray(u, v);
+        assert!((r[0] * 2.5 - 0.3).abs() < 1e-12 && (r[1] * 2.5 + 0.2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bad_values_are_named() {
+        let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../calib/c310.toml")).unwrap();
+        let err = Calibration::from_toml(&text.replace("fx = 1272.0", "fx = -3.0"), "x.toml").unwrap_err();
+        assert!(err.to_string().contains("camera.fx/fy"), "{err}");
+        let err = Calibration::from_toml("[camera]\nwidth = 3", "y.toml").unwrap_err();
+        assert!(err.to_string().contains("y.toml"), "{err}");
+    }
+
+    #[test]
+    fn scaling_keeps_the_field_of_view() {
+        let c = Calibration::nominal_c310();
+        let s = c.scaled_to(640, 360);
+        assert!((c.bearing_of_column(0.0) - s.bearing_of_column(0.0 - 0.25)).abs() < 1e-3);
+    }
+}

@@ -1,0 +1,27 @@
+//! # flownav-hal: the hardware boundary
+//!
+//! Everything that crosses between flownav's pure core and the hardware is defined here, so that
+//! real drivers and the simulated ones in `mocks/` are interchangeable.
+//!
+//! | module | owns |
+//! |---|---|
+//! | [`image`] | [`LumaImage`], the 8-bit grey frame every stage works on, and [`Frame`] (image + capture time) |
+//! | [`calib`] | [`Calibration`]: pinhole intrinsics, distortion, and where the camera sits on the robot (`calib/*.toml`) |
+//! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103) and [`Odometry`] |
+//! | [`error`] | [`ErrorKind`]: what the runtime does about a hardware error (reconnect, stop, skip, report) |
+//! | [`camera`] | the [`Camera`] trait |
+//! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`] |
+
+pub mod base;
+pub mod calib;
+pub mod camera;
+pub mod error;
+pub mod image;
+pub mod motion;
+
+pub use base::{BaseEvent, BaseStatus, MotorBase};
+pub use calib::{CalibError, Calibration};
+pub use camera::Camera;
+pub use error::{Error, ErrorKind};
+pub use image::{Frame, LumaImage};
+pub use motion::{BodyVelocity, Odometry};

@@ -1,0 +1,69 @@
+//! The `flownav` command line (clap derive). Each subcommand lives in its own module and
+//! exposes `Args` and `run(args, &Common)`.
+
+use crate::config::Config;
+use crate::flow::Backend;
+use anyhow::Context;
+use clap::{Args, Parser, Subcommand};
+use std::path::PathBuf;
+
+#[derive(Debug, Parser)]
+#[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
+pub struct Cli {
+    #[command(flatten)]
+    pub common: Common,
+    /// More log output (-v debug, -vv trace); RUST_LOG overrides.
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Flags shared by every command that sees frames.
+#[derive(Debug, Clone, Args)]
+pub struct Common {
+    /// TOML configuration file; flags given on the command line override it.
+    #[arg(long, global = true, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// Camera calibration file.
+    #[arg(long, global = true, value_name = "FILE", default_value = "calib/c310.toml")]
+    pub calib: PathBuf,
+    /// Optical-flow backend (overrides `flow.backend`).
+    #[arg(long, global = true, value_enum, value_name = "BACKEND")]
+    pub flow_backend: Option<Backend>,
+}
+
+impl Common {
+    /// The configuration: the file when given (validated), else defaults; then the flags.
+    pub fn config(&self) -> anyhow::Result<Config> {
+        let mut cfg = match &self.config {
+            Some(path) => Config::load(path)?,
+            None => Config::default(),
+        };
+        if let Some(b) = self.flow_backend {
+            cfg.flow.backend = b;
+        }
+        cfg.validate().context("after applying command-line flags")?;
+        Ok(cfg)
+    }
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {}
+
+/// Runs one parsed command line.
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {}
+}
+
+/// Log to stderr; `RUST_LOG` wins over `-v`.
+pub fn init_tracing(verbose: u8) {
+    let default = match verbose {
+        0 => "info",
+        1 => "debug",
+        _ => "trace",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
+}

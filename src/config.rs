@@ -1,0 +1,83 @@
+//! The TOML configuration file (`--config FILE`): one table per stage, every field optional
+//! with a documented default, unknown fields rejected. Command-line flags override it.
+
+use crate::flow::FlowParams;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("config file {path} is not valid: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("config: {field} {problem}")]
+    Invalid { field: String, problem: String },
+}
+
+/// The whole configuration.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    pub flow: FlowParams,
+}
+
+impl Config {
+    /// Reads, parses and validates a config file.
+    pub fn load(path: impl AsRef<Path>) -> Result<Self, ConfigError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
+        let cfg: Self =
+            toml::from_str(&text).map_err(|e| ConfigError::Parse { path: path.into(), message: e.to_string() })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Checks ranges that serde cannot.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        self.flow.validate()
+    }
+}
+
+impl FlowParams {
+    /// Checks the parameters on their own (frame-size checks happen when a frame arrives).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, problem: &str| {
+            Err(ConfigError::Invalid { field: format!("flow.{field}"), problem: problem.into() })
+        };
+        if self.rows == 0 || self.cols == 0 {
+            return bad("rows/cols", "must be at least 1");
+        }
+        if !(4..=256).contains(&self.block) || self.block % 2 != 0 {
+            return bad("block", "must be an even number of pixels in 4..=256");
+        }
+        if !(1..=64).contains(&self.radius) {
+            return bad("radius", "must be in 1..=64 pixels");
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_and_overrides() {
+        let cfg: Config = toml::from_str("[flow]\nradius = 8\n").unwrap();
+        assert_eq!(cfg.flow.radius, 8);
+        assert_eq!(cfg.flow.rows, 16);
+        cfg.validate().unwrap();
+    }
+
+    #[test]
+    fn bad_values_name_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("c.toml");
+        std::fs::write(&p, "[flow]\nblock = 7\n").unwrap();
+        assert!(Config::load(&p).unwrap_err().to_string().contains("flow.block"));
+        std::fs::write(&p, "[flow]\nbogus = 1\n").unwrap();
+        let e = Config::load(&p).unwrap_err().to_string();
+        assert!(e.contains("bogus") && e.contains("c.toml"), "{e}");
+    }
+}

@@ -1,0 +1,20 @@
+//! # flownav: optical-flow navigation for indoor robots with one webcam
+//!
+//! One pipeline, three ways to run it (`run` on a robot, `sim` in a simulated world,
+//! `analyze`/`replay` offline). The per-frame step is pure; I/O lives at the edges.
+//!
+//! | module | owns | paper |
+//! |---|---|---|
+//! | [`frames`] | reading images and frame folders (PNG/JPEG → 8-bit luma, `odometry.csv`) | |
+//! | [`flow`] | block-matching optical flow: parameters, the flow field, CPU and GPU engines | §2.2, §5 |
+//! | [`perception`] | the OFFIS output: TPO shape/distance, nearest obstacle, structure masks | §2.2 |
+//! | [`config`] | the TOML configuration file, defaults and validation | |
+//! | [`cli`] | the `flownav` command line: one module per subcommand | |
+//!
+//! Hardware types and traits are in the `hal` crate (`hal/`), the simulated world in `mocks`.
+
+pub mod cli;
+pub mod config;
+pub mod flow;
+pub mod frames;
+pub mod perception;
