@@ -1,7 +1,10 @@
 //! The TOML configuration file (`--config FILE`): one table per stage, every field optional
 //! with a documented default, unknown fields rejected. Command-line flags override it.
 
+use crate::control::ControlLimits;
 use crate::flow::FlowParams;
+use crate::mofis::MofisParams;
+use crate::pafsis::PafsisParams;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -20,6 +23,9 @@ pub enum ConfigError {
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     pub flow: FlowParams,
+    pub pafsis: PafsisParams,
+    pub mofis: MofisParams,
+    pub control: ControlLimits,
 }
 
 impl Config {
@@ -35,7 +41,10 @@ impl Config {
 
     /// Checks ranges that serde cannot.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.flow.validate()
+        self.flow.validate()?;
+        self.pafsis.validate()?;
+        self.mofis.validate()?;
+        self.control.validate()
     }
 }
 
