@@ -51,7 +51,8 @@ impl ControlLimits {
         for (field, v, zero_ok) in fields {
             let ok = v.is_finite() && (v > 0.0 || (zero_ok && v == 0.0));
             if !ok {
-                let problem = if zero_ok { "must be a finite number ≥ 0" } else { "must be a positive finite number" };
+                let problem =
+                    if zero_ok { "must be a finite number ≥ 0" } else { "must be a positive finite number" };
                 return Err(ConfigError::Invalid { field: format!("control.{field}"), problem: problem.into() });
             }
         }

@@ -76,13 +76,8 @@ pub fn plan(map: &TopoMap, mission: &Mission) -> Result<Plan, PlanError> {
             graph.add_edge(nodes[a], nodes[b], k);
         }
     }
-    let found = petgraph::algo::astar(
-        &graph,
-        nodes[from],
-        |n| n == nodes[to],
-        |e| map.edges[*e.weight()].cost_m(),
-        |_| 0.0,
-    );
+    let found =
+        petgraph::algo::astar(&graph, nodes[from], |n| n == nodes[to], |e| map.edges[*e.weight()].cost_m(), |_| 0.0);
     let Some((length_m, path)) = found else {
         return Err(PlanError::Unreachable {
             map: map.source.display().to_string(),

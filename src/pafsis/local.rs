@@ -19,6 +19,9 @@ use hal::BodyVelocity;
 use serde::Serialize;
 use std::fmt;
 
+/// Within a streak of door frames, a door distance that grows by more than this is a new door.
+const NEW_DOOR_JUMP_M: f64 = 0.5;
+
 /// A door the robot expects to pass (or stop at) on a corridor leg.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ExpectedDoor {
@@ -109,7 +112,12 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
         let point = map.place(&edge.to).and_then(|p| p.position_m);
         let mut turned = false;
         if wrap_angle(edge_heading - heading).abs() > ALIGN_TOLERANCE_RAD {
-            legs.push(Leg { kind: LegKind::Turn, heading_rad: edge_heading, leads_to: edge.to.clone(), line_point_m: None });
+            legs.push(Leg {
+                kind: LegKind::Turn,
+                heading_rad: edge_heading,
+                leads_to: edge.to.clone(),
+                line_point_m: None,
+            });
             turned = true;
         }
         heading = edge_heading;
@@ -128,9 +136,8 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                     turned = true;
                 }
                 Action::FollowCorridor { length_m, doors_left, doors_right, until } => {
-                    let unnamed = |n: u32, side| {
-                        (0..n).map(move |_| ExpectedDoor { name: None, side: Some(side), at_m: None })
-                    };
+                    let unnamed =
+                        |n: u32, side| (0..n).map(move |_| ExpectedDoor { name: None, side: Some(side), at_m: None });
                     let new_doors = unnamed(*doors_left, Side::Left).chain(unnamed(*doors_right, Side::Right));
                     let end = match until {
                         Until::Distance => LegEnd::Distance,
@@ -151,7 +158,10 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                         last.leads_to = edge.to.clone();
                         last.line_point_m = point;
                     } else {
-                        legs.push(leg(LegKind::Corridor { length_m: *length_m, doors: new_doors.collect(), end }, heading));
+                        legs.push(leg(
+                            LegKind::Corridor { length_m: *length_m, doors: new_doors.collect(), end },
+                            heading,
+                        ));
                     }
                     turned = false;
                 }
@@ -192,15 +202,34 @@ pub enum GoalStatus {
 #[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(tag = "event", rename_all = "snake_case")]
 pub enum PafsisEvent {
-    LegStarted { index: usize, leg: String },
+    LegStarted {
+        index: usize,
+        leg: String,
+    },
     /// A door sighting matched an expected door; `correction_m` moved the progress estimate.
-    DoorMatched { door: Option<String>, at_m: Option<f64>, correction_m: f64 },
+    DoorMatched {
+        door: Option<String>,
+        at_m: Option<f64>,
+        correction_m: f64,
+    },
     /// A door sighting that matched nothing expected.
-    DoorIgnored { estimated_at_m: Option<f64> },
-    LandmarkMissed { leg: usize, what: String },
-    Replanned { from: String, waypoints: Vec<String> },
-    Arrived { place: String },
-    Failed { reason: String },
+    DoorIgnored {
+        estimated_at_m: Option<f64>,
+    },
+    LandmarkMissed {
+        leg: usize,
+        what: String,
+    },
+    Replanned {
+        from: String,
+        waypoints: Vec<String>,
+    },
+    Arrived {
+        place: String,
+    },
+    Failed {
+        reason: String,
+    },
 }
 
 /// An external, metric pose (the simulator's ground truth, or a future localiser): map-frame
@@ -247,6 +276,9 @@ pub struct Pafsis {
     /// The TPO shape seen in the last consecutive frames, and how many.
     streak: (TpoShape, u32),
     door_sighting_reported: bool,
+    /// Expected position of the door matched in the current streak of door frames.
+    tracking: Option<f64>,
+    last_door_distance: Option<f64>,
     replans: u32,
     status: GoalStatus,
     events: Vec<PafsisEvent>,
@@ -277,6 +309,8 @@ impl Pafsis {
             heading_rad: wrap_angle(start_heading),
             streak: (TpoShape::None, 0),
             door_sighting_reported: false,
+            tracking: None,
+            last_door_distance: None,
             replans: 0,
             status: GoalStatus::Active,
             events: Vec::new(),
@@ -390,10 +424,31 @@ impl Pafsis {
             self.streak = (shape, 1);
             self.door_sighting_reported = false;
         }
-        if shape == TpoShape::Door && self.streak.1 >= self.params.landmark_min_frames && !self.door_sighting_reported {
+        if shape != TpoShape::Door {
+            self.tracking = None;
+            self.last_door_distance = None;
+            return;
+        }
+        if self.streak.1 < self.params.landmark_min_frames {
+            return;
+        }
+        let distance = p.tpo.distance_m.filter(|d| d.is_finite() && *d >= 0.0 && *d <= self.params.door_max_range_m);
+        // Within one streak of door frames, a distance that jumps up means the next door came
+        // into view: a new sighting.
+        let new_door = match (distance, self.last_door_distance) {
+            (Some(d), Some(prev)) => d > prev + NEW_DOOR_JUMP_M,
+            _ => false,
+        };
+        if let Some(d) = distance {
+            self.last_door_distance = Some(d);
+        }
+        if !self.door_sighting_reported || new_door {
             self.door_sighting_reported = true;
-            let distance = p.tpo.distance_m.filter(|d| d.is_finite() && *d >= 0.0 && *d <= self.params.door_max_range_m);
+            self.tracking = None;
             self.door_sighted(distance);
+        } else if let (Some(at), Some(d)) = (self.tracking, distance) {
+            // Still looking at the matched door: keep the progress estimate pinned to it.
+            self.along_m = at - d;
         }
     }
 
@@ -426,6 +481,7 @@ impl Pafsis {
                         self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
                     }
                     self.along_m += correction;
+                    self.tracking = at_m.filter(|_| seen_at.is_some());
                     self.next_door = i + 1;
                     self.doors_sighted += 1;
                     self.events.push(PafsisEvent::DoorMatched { door: name, at_m, correction_m: correction });
@@ -457,7 +513,17 @@ impl Pafsis {
                     self.next_door += 1;
                 }
                 match end {
-                    LegEnd::Distance | LegEnd::Door => self.along_m >= *length_m,
+                    LegEnd::Distance | LegEnd::Door => {
+                        let done = self.along_m >= *length_m;
+                        if done {
+                            // Arrived by odometry: whatever was still expected went unseen.
+                            for d in &doors[self.next_door.min(doors.len())..] {
+                                let what = describe_door(d);
+                                self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
+                            }
+                        }
+                        done
+                    }
                     LegEnd::Corner | LegEnd::Wall => {
                         let want = if *end == LegEnd::Corner { TpoShape::Corner } else { TpoShape::Wall };
                         let seen = self.streak.0 == want
@@ -485,6 +551,10 @@ impl Pafsis {
         self.along_m = 0.0;
         self.next_door = 0;
         self.doors_sighted = 0;
+        self.tracking = None;
+        // A door already in view when the leg starts counts for the new leg.
+        self.door_sighting_reported = false;
+        self.last_door_distance = None;
         match self.legs.get(index) {
             Some(leg) => self.events.push(PafsisEvent::LegStarted { index, leg: leg.to_string() }),
             None => self.arrive(),

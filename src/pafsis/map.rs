@@ -317,7 +317,11 @@ fn check_action(
         Some(_) => Ok(()),
     };
     let length_check = |l: f64| {
-        if l.is_finite() && l > 0.0 { Ok(()) } else { Err(format!("length_m must be a positive finite length, not {l}")) }
+        if l.is_finite() && l > 0.0 {
+            Ok(())
+        } else {
+            Err(format!("length_m must be a positive finite length, not {l}"))
+        }
     };
     match a {
         Action::ExitRoom { door, length_m }
