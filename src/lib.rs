@@ -7,6 +7,7 @@
 //! |---|---|---|
 //! | [`frames`] | reading images and frame folders (PNG/JPEG → 8-bit luma, `odometry.csv`) | |
 //! | [`flow`] | block-matching optical flow: parameters, the flow field, CPU and GPU engines | §2.2, §5 |
+//! | [`fuzzy`] | Mamdani fuzzy inference: TOML rule files, validation, compiled fast evaluation | §5 |
 //! | [`perception`] | the OFFIS output: TPO shape/distance, nearest obstacle, structure masks | §2.2 |
 //! | [`pafsis`] | topological map, global plan (mission → waypoints), local plan (landmarks + odometry → goal velocity/angle) | §2.2 |
 //! | [`mofis`] | fuzzy collision avoidance and its fusion with the goal → set-point | §2.2 |
@@ -21,6 +22,7 @@ pub mod config;
 pub mod control;
 pub mod flow;
 pub mod frames;
+pub mod fuzzy;
 pub mod mofis;
 pub mod pafsis;
 pub mod perception;
