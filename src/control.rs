@@ -110,12 +110,8 @@ impl Limiter {
 /// change of sign brakes to zero first).
 fn rate_limit_speed(from: f64, to: f64, up: f64, down: f64) -> f64 {
     if from * to < 0.0 {
-        // Crossing zero: brake toward zero first.
-        let braked = from - from.signum() * down.min(from.abs());
-        if braked != 0.0 {
-            return braked;
-        }
-        return to.clamp(-up, up);
+        // Crossing zero: brake to zero first; the other direction starts next step.
+        return from - from.signum() * down.min(from.abs());
     }
     let delta = to - from;
     let growing = to.abs() > from.abs();
@@ -161,12 +157,15 @@ mod tests {
     fn reverse_brakes_through_zero() {
         let mut l = Limiter::new(ControlLimits { max_reverse_speed: 0.2, ..ControlLimits::default() });
         l.limit(BodyVelocity::new(0.5, 0.0), 100.0);
-        let out = l.limit(BodyVelocity::new(-0.2, 0.0), 0.1);
-        assert!((out.v - 0.4).abs() < 1e-12);
-        let out = l.limit(BodyVelocity::new(-0.2, 0.0), 100.0);
-        assert_eq!(out.v, 0.0, "stops at zero before reversing");
-        let out = l.limit(BodyVelocity::new(-0.2, 0.0), 100.0);
-        assert_eq!(out.v, -0.2);
+        let mut prev = 0.5;
+        for _ in 0..40 {
+            let v = l.limit(BodyVelocity::new(-0.2, 0.0), 0.1).v;
+            // Braking at ≤ 1 m/s² while moving forward, speeding up backward at ≤ 0.5 m/s².
+            let max_step = if prev > 0.0 { 0.1 } else { 0.05 };
+            assert!(v <= prev && prev - v <= max_step + 1e-12, "{prev} -> {v}");
+            prev = v;
+        }
+        assert_eq!(prev, -0.2);
     }
 
     #[test]

@@ -476,8 +476,8 @@ impl Pafsis {
                         _ => 0.0,
                     };
                     let (name, at_m) = (door.name.clone(), door.at_m);
-                    for missed in self.next_door..i {
-                        let what = describe_door(&doors[missed]);
+                    for missed in &doors[self.next_door..i] {
+                        let what = describe_door(missed);
                         self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
                     }
                     self.along_m += correction;
