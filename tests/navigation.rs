@@ -150,10 +150,15 @@ mod mofis {
     }
 
     fn obstacle(distance: f64, bearing: f64) -> Perception {
-        let mut p = Perception::default();
-        p.obstacle =
-            Obstacle { present: true, distance_m: Some(distance), bearing_rad: Some(bearing), cell: Some([4, 3]) };
-        p
+        Perception {
+            obstacle: Obstacle {
+                present: true,
+                distance_m: Some(distance),
+                bearing_rad: Some(bearing),
+                cell: Some([4, 3]),
+            },
+            ..Perception::default()
+        }
     }
 
     fn goal(velocity: f64, angle_rad: f64) -> Goal {
@@ -200,8 +205,10 @@ mod mofis {
     #[test]
     fn wall_ahead_slows_but_lets_the_goal_turn() {
         let mut m = mofis();
-        let mut p = Perception::default();
-        p.tpo = Tpo { shape: TpoShape::Wall, confidence: 0.9, distance_m: Some(0.6) };
+        let p = Perception {
+            tpo: Tpo { shape: TpoShape::Wall, confidence: 0.9, distance_m: Some(0.6) },
+            ..Perception::default()
+        };
         let out = m.step(&p, &goal(0.35, 1.0), SETTLED).unwrap();
         assert!(out.setpoint.v < 0.1, "{out:?}");
         assert!((out.setpoint.omega - 1.0).abs() < 1e-9, "turn rate clamped to the limit: {out:?}");
