@@ -312,7 +312,7 @@ fn check_action(
     let door_check = |door: &str| match index.get(door) {
         None => Err(format!("unknown place \"{door}\"")),
         Some(&i) if places[i].kind != PlaceKind::Door => {
-            Err(format!("\"{door}\" is a {:?}, not a door", places[i].kind).to_lowercase())
+            Err(format!("\"{door}\" is a {}, not a door", format!("{:?}", places[i].kind).to_lowercase()))
         }
         Some(_) => Ok(()),
     };
@@ -399,7 +399,7 @@ mod tests {
         assert!(e.contains("bad.toml") && e.contains("jump"), "{e}");
 
         let e = err(&TINY.replace("door = \"D1\"", "door = \"R1\""));
-        assert!(e.contains("action 1") && e.contains("not a door"), "{e}");
+        assert!(e.contains("action 1") && e.contains("\"R1\" is a room, not a door"), "{e}");
 
         let e = err(&TINY.replace("length_m = 2.0", "length_m = -2.0"));
         assert!(e.contains("length_m must be a positive"), "{e}");
