@@ -54,6 +54,21 @@ impl FlowParams {
         if !(1..=64).contains(&self.radius) {
             return bad("radius", "must be in 1..=64 pixels");
         }
+        if self.prefilter_radius > crate::flow::prefilter::MAX_RADIUS {
+            return bad("prefilter_radius", "must be in 0..=7 pixels (0 = match raw intensities)");
+        }
+        if self.pyramid_levels > 6 {
+            return bad("pyramid_levels", "must be in 0..=6 (0 or 1 = single level, no coarse-to-fine)");
+        }
+        if !(1..=64).contains(&self.refine_radius) {
+            return bad("refine_radius", "must be in 1..=64 pixels");
+        }
+        if !(self.min_texture.is_finite() && (0.0..=255.0).contains(&self.min_texture)) {
+            return bad("min_texture", "must be a number of grey levels in 0..=255");
+        }
+        if !(self.ambiguity_ratio.is_finite() && (0.0..=16.0).contains(&self.ambiguity_ratio)) {
+            return bad("ambiguity_ratio", "must be a number in 0..=16");
+        }
         Ok(())
     }
 }
