@@ -218,6 +218,18 @@ pub trait FlowEngine: Send {
     fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError>;
 }
 
+/// The engine for `params.backend`: `auto` and `cpu` give the CPU engine; `gpu` fails with
+/// [`FlowError::BackendUnavailable`] while no GPU engine is compiled into this build.
+pub fn engine(params: &FlowParams) -> Result<Box<dyn FlowEngine>, FlowError> {
+    match params.backend {
+        Backend::Auto | Backend::Cpu => Ok(Box::new(cpu::CpuFlow::new(params.clone())?)),
+        Backend::Gpu => Err(FlowError::BackendUnavailable(
+            "gpu",
+            "the GPU flow engine is not compiled into this build; use --flow-backend cpu or auto".into(),
+        )),
+    }
+}
+
 /// Checks that a frame pair can be processed with `params`: same size, large enough for the
 /// blocks at every pyramid level, and for a tiled grid.
 pub fn check_frames(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Result<(), FlowError> {
