@@ -36,10 +36,13 @@ struct Level {
 pub struct CpuFlow {
     params: FlowParams,
     kernel: Kernel,
+    /// SAD kernel per pyramid level (the block shrinks at coarser levels).
+    kernels: Vec<Kernel>,
     levels: Vec<Level>,
     scratch: Scratch,
     origins: Vec<(usize, usize)>,
     disp: Vec<(i32, i32)>,
+    prev: Vec<(i32, i32)>,
     flags: Vec<(bool, bool)>,
     block_buf: Vec<u8>,
     costs: Vec<u32>,
@@ -58,14 +61,23 @@ impl CpuFlow {
     /// Panics when `kernel` cannot run blocks of `params.block` on this CPU.
     pub fn with_kernel(params: FlowParams, kernel: Kernel) -> Self {
         assert!(kernel.supports(params.block), "SAD kernel {kernel:?} cannot run {} px blocks here", params.block);
-        let levels = (0..params.pyramid_levels.max(1)).map(|_| Level::default()).collect();
+        let nlev = params.pyramid_levels.max(1);
+        let levels = (0..nlev).map(|_| Level::default()).collect();
+        let kernels = (0..nlev)
+            .map(|l| {
+                let b = super::level_block(params.block, l);
+                if kernel.supports(b) { kernel } else { Kernel::detect(b).min_with(kernel) }
+            })
+            .collect();
         Self {
             params,
             kernel,
+            kernels,
             levels,
             scratch: Scratch::default(),
             origins: Vec::new(),
             disp: Vec::new(),
+            prev: Vec::new(),
             flags: Vec::new(),
             block_buf: Vec::new(),
             costs: Vec::new(),
@@ -136,14 +148,23 @@ impl FlowEngine for CpuFlow {
             let (wl, hl) = (lev.hp_a.width(), lev.hp_a.height());
             let coarsest = l == nlev - 1;
             let radius = if coarsest { p.radius } else { p.refine_radius } as i32;
+            let bl = super::level_block(bs, l);
+            let kernel = self.kernels[l];
+            self.prev.clone_from(&self.disp);
             for i in 0..n {
                 let (r, c) = (i / p.cols, i % p.cols);
                 let (ox, oy) = self.origins[i];
-                let x0 = level_origin(ox, bs, l, wl);
-                let y0 = level_origin(oy, bs, l, hl);
-                let centre = if coarsest { (0, 0) } else { (2 * self.disp[i].0, 2 * self.disp[i].1) };
-                let win = Window::new(x0, y0, bs, wl, hl, centre, radius);
-                copy_block(&lev.hp_a, x0, y0, bs, &mut self.block_buf);
+                let x0 = level_origin(ox, bs, bl, l, wl);
+                let y0 = level_origin(oy, bs, bl, l, hl);
+                let centre = if coarsest {
+                    (0, 0)
+                } else {
+                    let m = median3x3(&self.prev, p.rows, p.cols, r, c);
+                    (2 * m.0, 2 * m.1)
+                };
+                let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
+                let blk = &mut self.block_buf[..bl * bl];
+                copy_block(&lev.hp_a, x0, y0, bl, blk);
                 let mut preds = [None; 3];
                 preds[0] = Some(win.centre);
                 if c > 0 {
@@ -152,8 +173,7 @@ impl FlowEngine for CpuFlow {
                 if r > 0 {
                     preds[2] = Some(self.disp[i - p.cols]);
                 }
-                let found =
-                    search(self.kernel, &self.block_buf, &lev.hp_b, x0, y0, bs, &win, &preds, amb_q8, &mut self.costs);
+                let found = search(kernel, blk, &lev.hp_b, x0, y0, bl, &win, &preds, amb_q8, &mut self.costs);
                 self.disp[i] = found.d;
                 self.flags[i].0 |= found.edge;
                 self.flags[i].1 |= found.ambiguous;
@@ -189,10 +209,26 @@ impl FlowEngine for CpuFlow {
     }
 }
 
-/// Top-left coordinate of a block at pyramid level `l`: its level-0 centre pixel halved `l`
-/// times, minus B/2, clamped into [0, len_l − B].
-pub(crate) fn level_origin(o: usize, block: usize, l: usize, len_l: usize) -> usize {
-    ((o + block / 2) >> l).saturating_sub(block / 2).min(len_l - block)
+/// Top-left coordinate of a block at pyramid level `l`: its level-0 centre pixel (o + B/2)
+/// halved `l` times, minus B_l/2, clamped into [0, len_l − B_l].
+pub(crate) fn level_origin(o: usize, block: usize, block_l: usize, l: usize, len_l: usize) -> usize {
+    ((o + block / 2) >> l).saturating_sub(block_l / 2).min(len_l - block_l)
+}
+
+/// Component-wise median of the displacements of block (r, c) and its grid neighbours
+/// (3×3, cut at the grid edge: 4, 6 or 9 values; the lower median for an even count).
+pub(crate) fn median3x3(d: &[(i32, i32)], rows: usize, cols: usize, r: usize, c: usize) -> (i32, i32) {
+    let (mut xs, mut ys) = ([0i32; 9], [0i32; 9]);
+    let mut n = 0;
+    for rr in r.saturating_sub(1)..=(r + 1).min(rows - 1) {
+        for cc in c.saturating_sub(1)..=(c + 1).min(cols - 1) {
+            (xs[n], ys[n]) = d[rr * cols + cc];
+            n += 1;
+        }
+    }
+    xs[..n].sort_unstable();
+    ys[..n].sort_unstable();
+    (xs[(n - 1) / 2], ys[(n - 1) / 2])
 }
 
 /// The candidate displacements of one block at one level: [lo, hi] in x and y.
@@ -548,18 +584,18 @@ mod tests {
     #[test]
     fn bad_frames_give_clear_errors() {
         let mut eng = CpuFlow::new(FlowParams::default()).unwrap();
-        let e = eng.compute(&LumaImage::new(640, 480), &LumaImage::new(640, 360)).unwrap_err().to_string();
+        let e = eng.compute(&LumaImage::new(640, 480), &LumaImage::new(640, 360)).map(|_| ()).unwrap_err().to_string();
         assert!(e.contains("640x480") && e.contains("640x360"), "{e}");
-        let e = eng.compute(&LumaImage::new(20, 20), &LumaImage::new(20, 20)).unwrap_err().to_string();
+        let e = eng.compute(&LumaImage::new(20, 20), &LumaImage::new(20, 20)).map(|_| ()).unwrap_err().to_string();
         assert!(e.contains("too small") && e.contains("flow.block"), "{e}");
-        let e = eng.compute(&LumaImage::new(0, 0), &LumaImage::new(0, 0)).unwrap_err().to_string();
+        let e = eng.compute(&LumaImage::new(0, 0), &LumaImage::new(0, 0)).map(|_| ()).unwrap_err().to_string();
         assert!(e.contains("too small"), "{e}");
-        let mut pyr = CpuFlow::new(FlowParams { pyramid_levels: 4, ..FlowParams::default() }).unwrap();
-        let e = pyr.compute(&LumaImage::new(200, 200), &LumaImage::new(200, 200)).unwrap_err().to_string();
-        assert!(e.contains("pyramid level 3") && e.contains("pyramid_levels"), "{e}");
+        let mut pyr = CpuFlow::new(FlowParams { pyramid_levels: 6, ..FlowParams::default() }).unwrap();
+        let e = pyr.compute(&LumaImage::new(200, 200), &LumaImage::new(200, 200)).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("pyramid level 5") && e.contains("pyramid_levels"), "{e}");
         let tile = FlowParams { placement: crate::flow::Placement::Tile, ..FlowParams::default() };
         let mut eng = CpuFlow::new(tile).unwrap();
-        let e = eng.compute(&LumaImage::new(500, 600), &LumaImage::new(500, 600)).unwrap_err().to_string();
+        let e = eng.compute(&LumaImage::new(500, 600), &LumaImage::new(500, 600)).map(|_| ()).unwrap_err().to_string();
         assert!(e.contains("512x512") && e.contains("500x600"), "{e}");
         assert!(CpuFlow::new(FlowParams { radius: 0, ..FlowParams::default() }).is_err());
     }

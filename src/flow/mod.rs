@@ -245,7 +245,7 @@ pub fn check_frames(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Result
     let levels = params.pyramid_levels.max(1);
     for l in 0..levels {
         let (wl, hl) = (w >> l, h >> l);
-        if wl < params.block || hl < params.block {
+        if wl < level_block(params.block, l) || hl < level_block(params.block, l) {
             let level_note = if l == 0 {
                 String::new()
             } else {
@@ -267,6 +267,12 @@ pub fn check_frames(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Result
         });
     }
     Ok(())
+}
+
+/// Block side at pyramid level `l`: B halved `l` times, but not below 8 px (nor above B), so
+/// that a block covers the same part of the scene at every level.
+pub fn level_block(block: usize, l: usize) -> usize {
+    (block >> l).max(block.min(8))
 }
 
 /// Top-left pixel (x0, y0) in frame A of every block, row-major (`rows × cols`).

@@ -11,7 +11,6 @@ use hal::LumaImage;
 pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Result<FlowField, FlowError> {
     params.validate()?;
     super::check_frames(params, a, b)?;
-    let bs = params.block;
     let nlev = params.pyramid_levels.max(1);
     // raw[l] and hp[l] for frames A and B.
     let mut raw = vec![(a.clone(), b.clone())];
@@ -36,19 +35,35 @@ pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Resu
     let q8 = params.ambiguity_q8() as i64;
     let mut field =
         FlowField { rows: params.rows, cols: params.cols, width: a.width(), height: a.height(), vectors: vec![] };
-    for &(ox, oy) in &origins {
-        let (mut d, mut edge, mut ambiguous) = ((0i64, 0i64), false, false);
-        let mut last = None;
-        for l in (0..nlev).rev() {
+    let n = origins.len();
+    let (mut d_all, mut edge_all, mut amb_all) = (vec![(0i64, 0i64); n], vec![false; n], vec![false; n]);
+    let mut last = vec![None; n];
+    for l in (0..nlev).rev() {
+        let coarse = d_all.clone();
+        for (i, &(ox, oy)) in origins.iter().enumerate() {
             let (ha, hb) = &hp[l];
             let (wl, hl) = (ha.width() as i64, ha.height() as i64);
-            let b2 = bs as i64 / 2;
-            let x0 = (((ox as i64 + b2) >> l) - b2).clamp(0, wl - bs as i64);
-            let y0 = (((oy as i64 + b2) >> l) - b2).clamp(0, hl - bs as i64);
+            let b2 = params.block as i64 / 2;
+            // The block side at this level (B at level 0).
+            let bs = super::level_block(params.block, l);
+            let x0 = (((ox as i64 + b2) >> l) - bs as i64 / 2).clamp(0, wl - bs as i64);
+            let y0 = (((oy as i64 + b2) >> l) - bs as i64 / 2).clamp(0, hl - bs as i64);
             let (centre, r) = if l == nlev - 1 {
                 ((0, 0), params.radius as i64)
             } else {
-                ((2 * d.0, 2 * d.1), params.refine_radius as i64)
+                // Lower median of the 3×3 grid neighbourhood at the coarser level, doubled.
+                let (br, bc) = (i / params.cols, i % params.cols);
+                let (mut xs, mut ys) = (vec![], vec![]);
+                for rr in br.saturating_sub(1)..=(br + 1).min(params.rows - 1) {
+                    for cc in bc.saturating_sub(1)..=(bc + 1).min(params.cols - 1) {
+                        xs.push(coarse[rr * params.cols + cc].0);
+                        ys.push(coarse[rr * params.cols + cc].1);
+                    }
+                }
+                xs.sort();
+                ys.sort();
+                let m = (xs.len() - 1) / 2;
+                ((2 * xs[m], 2 * ys[m]), params.refine_radius as i64)
             };
             let (fx0, fx1, fy0, fy1) = (-x0, wl - bs as i64 - x0, -y0, hl - bs as i64 - y0);
             let c = (centre.0.clamp(fx0, fx1), centre.1.clamp(fy0, fy1));
@@ -80,15 +95,15 @@ pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Resu
                 }
             }
             let (c1, _, d1) = best.expect("window never empty");
-            d = d1;
-            edge |= d1.0 == lx || d1.0 == hx || d1.1 == ly || d1.1 == hy;
+            d_all[i] = d1;
+            edge_all[i] |= d1.0 == lx || d1.0 == hx || d1.1 == ly || d1.1 == hy;
             for dy in ly..=hy {
                 for dx in lx..=hx {
                     let s = all[at(dx, dy)];
                     let far = (dx - d1.0).abs().max((dy - d1.1).abs()) >= 2;
                     let local_min = (-1..=1)
                         .all(|ny| (-1..=1).all(|nx| !inside(dx + nx, dy + ny) || all[at(dx + nx, dy + ny)] >= s));
-                    ambiguous |= far && local_min && s * 256 <= c1 * (256 + q8);
+                    amb_all[i] |= far && local_min && s * 256 <= c1 * (256 + q8);
                 }
             }
             if l == 0 {
@@ -128,11 +143,11 @@ pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Resu
                 let textureless = 16 * g < params.min_texture_q4() as i64 * (2 * bs * (bs - 1)) as i64;
                 let validity = match () {
                     _ if textureless => Validity::Textureless,
-                    _ if edge => Validity::OutOfFrame,
-                    _ if ambiguous => Validity::Ambiguous,
+                    _ if edge_all[i] => Validity::OutOfFrame,
+                    _ if amb_all[i] => Validity::Ambiguous,
                     _ => Validity::Valid,
                 };
-                last = Some(FlowVector {
+                last[i] = Some(FlowVector {
                     x: (ox + bs / 2) as f32,
                     y: (oy + bs / 2) as f32,
                     u: (d1.0 as f64 + du) as f32,
@@ -142,7 +157,7 @@ pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Resu
                 });
             }
         }
-        field.vectors.push(last.expect("level 0 always runs"));
     }
+    field.vectors = last.into_iter().map(|v| v.expect("level 0 always runs")).collect();
     Ok(field)
 }

@@ -33,6 +33,16 @@ impl Kernel {
         Kernel::Scalar
     }
 
+    /// `self` unless `other` is slower (used to force a slower kernel everywhere in tests).
+    pub fn min_with(self, other: Kernel) -> Kernel {
+        let rank = |k: Kernel| match k {
+            Kernel::Scalar => 0,
+            Kernel::Sse2 => 1,
+            Kernel::Avx2 => 2,
+        };
+        if rank(other) < rank(self) { other } else { self }
+    }
+
     /// Whether this kernel can run blocks `block` pixels wide on this CPU.
     pub fn supports(self, block: usize) -> bool {
         match self {
