@@ -83,7 +83,9 @@ pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Resu
             let gw = (hx - lx + 1) as usize;
             let mut all = vec![0i64; gw * (hy - ly + 1) as usize];
             let at = |dx: i64, dy: i64| (dy - ly) as usize * gw + (dx - lx) as usize;
-            let mut best: Option<(i64, (i64, i64, i64), (i64, i64))> = None;
+            // (cost, tie-break key, displacement) of the best candidate so far.
+            type Best = (i64, (i64, i64, i64), (i64, i64));
+            let mut best: Option<Best> = None;
             for dy in ly..=hy {
                 for dx in lx..=hx {
                     let s = cost(dx, dy);

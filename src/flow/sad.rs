@@ -22,10 +22,10 @@ impl Kernel {
     pub fn detect(block: usize) -> Self {
         #[cfg(target_arch = "x86_64")]
         {
-            if block % 32 == 0 && std::arch::is_x86_feature_detected!("avx2") {
+            if block.is_multiple_of(32) && std::arch::is_x86_feature_detected!("avx2") {
                 return Kernel::Avx2;
             }
-            if block % 16 == 0 {
+            if block.is_multiple_of(16) {
                 return Kernel::Sse2;
             }
         }
@@ -48,9 +48,9 @@ impl Kernel {
         match self {
             Kernel::Scalar => true,
             #[cfg(target_arch = "x86_64")]
-            Kernel::Sse2 => block % 16 == 0,
+            Kernel::Sse2 => block.is_multiple_of(16),
             #[cfg(target_arch = "x86_64")]
-            Kernel::Avx2 => block % 32 == 0 && std::arch::is_x86_feature_detected!("avx2"),
+            Kernel::Avx2 => block.is_multiple_of(32) && std::arch::is_x86_feature_detected!("avx2"),
             #[cfg(not(target_arch = "x86_64"))]
             Kernel::Sse2 | Kernel::Avx2 => false,
         }
@@ -78,14 +78,14 @@ impl Kernel {
         match self {
             #[cfg(target_arch = "x86_64")]
             Kernel::Avx2 => {
-                assert!(block % 32 == 0 && std::arch::is_x86_feature_detected!("avx2"));
+                assert!(block.is_multiple_of(32) && std::arch::is_x86_feature_detected!("avx2"));
                 // SAFETY: AVX2 is present (checked above) and every row read lies inside `a`
                 // and `img` (asserted above).
                 unsafe { x86::sad_avx2(a.as_ptr(), img.as_ptr().add(off), stride, block, limit) }
             }
             #[cfg(target_arch = "x86_64")]
             Kernel::Sse2 => {
-                assert!(block % 16 == 0);
+                assert!(block.is_multiple_of(16));
                 // SAFETY: SSE2 is part of x86-64; bounds asserted above.
                 unsafe { x86::sad_sse2(a.as_ptr(), img.as_ptr().add(off), stride, block, limit) }
             }
@@ -125,7 +125,7 @@ mod x86 {
 
     /// # Safety
     /// AVX2 must be available; `a` must point at `block*block` readable bytes and `b` at
-    /// `block` rows of `block` readable bytes, `stride` apart. `block % 32 == 0`.
+    /// `block` rows of `block` readable bytes, `stride` apart. `block.is_multiple_of(32)`.
     #[target_feature(enable = "avx2")]
     pub unsafe fn sad_avx2(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): the caller guarantees every address read here is in bounds.
@@ -189,7 +189,7 @@ mod x86 {
     }
 
     /// # Safety
-    /// As [`sad_avx2`] with `block % 16 == 0`; SSE2 is always present on x86-64.
+    /// As [`sad_avx2`] with `block.is_multiple_of(16)`; SSE2 is always present on x86-64.
     pub unsafe fn sad_sse2(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): the caller guarantees every address read here is in bounds.
         unsafe {
@@ -237,7 +237,7 @@ mod tests {
             let want = sad_scalar(&a, &img, off, stride, block, limit);
             let got = Kernel::detect(block).sad(&a, &img, off, stride, block, limit);
             prop_assert_eq!(got, want);
-            if block % 16 == 0 {
+            if block.is_multiple_of(16) {
                 prop_assert_eq!(Kernel::Sse2.sad(&a, &img, off, stride, block, limit), want);
             }
         }
