@@ -57,11 +57,26 @@ impl FlowParams {
         if self.rows == 0 || self.cols == 0 {
             return bad("rows/cols", "must be at least 1");
         }
-        if !(4..=256).contains(&self.block) || self.block % 2 != 0 {
+        if !(4..=256).contains(&self.block) || !self.block.is_multiple_of(2) {
             return bad("block", "must be an even number of pixels in 4..=256");
         }
         if !(1..=64).contains(&self.radius) {
             return bad("radius", "must be in 1..=64 pixels");
+        }
+        if self.prefilter_radius > crate::flow::prefilter::MAX_RADIUS {
+            return bad("prefilter_radius", "must be in 0..=7 pixels (0 = match raw intensities)");
+        }
+        if self.pyramid_levels > 6 {
+            return bad("pyramid_levels", "must be in 0..=6 (0 or 1 = single level, no coarse-to-fine)");
+        }
+        if !(1..=64).contains(&self.refine_radius) {
+            return bad("refine_radius", "must be in 1..=64 pixels");
+        }
+        if !(self.min_texture.is_finite() && (0.0..=255.0).contains(&self.min_texture)) {
+            return bad("min_texture", "must be a number of grey levels in 0..=255");
+        }
+        if !(self.ambiguity_ratio.is_finite() && (0.0..=16.0).contains(&self.ambiguity_ratio)) {
+            return bad("ambiguity_ratio", "must be a number in 0..=16");
         }
         Ok(())
     }

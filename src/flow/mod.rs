@@ -1,9 +1,26 @@
 //! Block-matching optical flow (paper §2.2, §5): a grid of blocks spread uniformly over frame A,
 //! each searched for in frame B within a radius, with sub-pixel refinement.
 //!
-//! [`FlowParams`] configures it; [`FlowField`] is what every later stage consumes. The CPU
-//! engine is the reference; the GPU engine must give the same answers.
+//! [`FlowParams`] configures it; [`FlowField`] is what every later stage consumes; a
+//! [`FlowEngine`] computes it. The CPU engine ([`cpu::CpuFlow`]) is the reference; the GPU engine
+//! must give the same answers. The exact algorithm (block placement, prefilter, cost, candidate
+//! order, tie-break, validity thresholds, sub-pixel formula) is the "Algorithm contract" in
+//! `docs/flow.md`; [`reference`] implements it literally, without any speed tricks.
+//!
+//! | module | owns |
+//! |---|---|
+//! | [`prefilter`] | the local-mean high-pass that makes SAD tolerant to exposure changes; 2×2 pyramid |
+//! | [`sad`] | sum-of-absolute-differences kernels (AVX2 / SSE2 / scalar) with early termination |
+//! | [`cpu`] | [`cpu::CpuFlow`], the fast CPU engine |
+//! | [`reference`] | [`reference::reference_flow`], the contract written as plainly as possible |
 
+pub mod cpu;
+pub mod prefilter;
+pub mod reference;
+pub mod sad;
+
+use crate::config::ConfigError;
+use hal::LumaImage;
 use serde::{Deserialize, Serialize};
 
 /// Why a vector is not trusted.
@@ -15,13 +32,24 @@ pub enum Validity {
     Textureless,
     /// The best match is not clearly better than another, distant candidate.
     Ambiguous,
-    /// The block or its best match touches the frame border (the true match may lie outside).
+    /// The best match lies on the edge of the searched window (cut by the frame border of B, or
+    /// at the search radius), so the true match may lie outside what was searched.
     OutOfFrame,
 }
 
 impl Validity {
     pub fn is_valid(self) -> bool {
         self == Validity::Valid
+    }
+
+    /// The snake_case name used in JSON output (`"valid"`, `"textureless"`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Validity::Valid => "valid",
+            Validity::Textureless => "textureless",
+            Validity::Ambiguous => "ambiguous",
+            Validity::OutOfFrame => "out_of_frame",
+        }
     }
 }
 
@@ -60,6 +88,11 @@ impl FlowField {
     pub fn at(&self, r: usize, c: usize) -> &FlowVector {
         &self.vectors[r * self.cols + c]
     }
+
+    /// Number of valid vectors.
+    pub fn valid_count(&self) -> usize {
+        self.vectors.iter().filter(|v| v.valid()).count()
+    }
 }
 
 /// Which implementation computes the flow.
@@ -71,6 +104,17 @@ pub enum Backend {
     Auto,
     Cpu,
     Gpu,
+}
+
+/// Where the blocks of the grid sit in the frame (see [`block_origins`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Placement {
+    /// Block `c` is centred in cell `c` of `cols` equal cells across the frame (same for rows).
+    #[default]
+    Spread,
+    /// Non-overlapping blocks tiled from the top-left pixel: block `c` starts at `c * block`.
+    Tile,
 }
 
 /// Block-matching parameters (the `[flow]` table of the config file).
@@ -85,10 +129,170 @@ pub struct FlowParams {
     /// Search radius, pixels: displacements in [-radius, radius]² are tried.
     pub radius: usize,
     pub backend: Backend,
+    /// Block placement: `spread` (default) or `tile`.
+    pub placement: Placement,
+    /// Half-width k of the (2k+1)² local-mean window subtracted from each frame before matching
+    /// (the exposure-tolerant high-pass). 0 matches raw intensities (plain SAD).
+    pub prefilter_radius: usize,
+    /// Pyramid levels for coarse-to-fine search: 1 = off (single level). With L levels the
+    /// coarsest level (1/2^(L-1) resolution) is searched over ±radius and each finer level over
+    /// ±refine_radius around twice the coarser result, so motions up to radius·2^(L-1) are found.
+    pub pyramid_levels: usize,
+    /// Search radius at the finer pyramid levels, pixels (only used when pyramid_levels > 1).
+    pub refine_radius: usize,
+    /// Minimum texture: mean absolute difference between neighbouring prefiltered pixels of the
+    /// block, grey levels. Blocks below it are `textureless`. Quantised to 1/16.
+    pub min_texture: f32,
+    /// A block is `ambiguous` when another local minimum of the cost, at least 2 px away from the
+    /// best, costs at most (1 + ambiguity_ratio) × the best cost. Quantised to 1/256.
+    pub ambiguity_ratio: f32,
 }
 
 impl Default for FlowParams {
     fn default() -> Self {
-        Self { rows: 16, cols: 16, block: 32, radius: 16, backend: Backend::Auto }
+        Self {
+            rows: 16,
+            cols: 16,
+            block: 32,
+            radius: 16,
+            backend: Backend::Auto,
+            placement: Placement::Spread,
+            prefilter_radius: 4,
+            pyramid_levels: 1,
+            refine_radius: 4,
+            min_texture: 2.0,
+            ambiguity_ratio: 0.1,
+        }
     }
+}
+
+impl FlowParams {
+    /// `min_texture` in sixteenths of a grey level, as the contract compares it.
+    pub fn min_texture_q4(&self) -> u64 {
+        (f64::from(self.min_texture) * 16.0).round().max(0.0) as u64
+    }
+
+    /// `ambiguity_ratio` in 1/256 units, as the contract compares it.
+    pub fn ambiguity_q8(&self) -> u64 {
+        (f64::from(self.ambiguity_ratio) * 256.0).round().max(0.0) as u64
+    }
+}
+
+/// Why a flow field cannot be computed.
+#[derive(Debug, thiserror::Error)]
+pub enum FlowError {
+    #[error(
+        "frames differ in size: A is {a_width}x{a_height}, B is {b_width}x{b_height}; flow needs two frames of the same size"
+    )]
+    SizeMismatch { a_width: usize, a_height: usize, b_width: usize, b_height: usize },
+    #[error(
+        "frame {width}x{height} is too small for {block}x{block} blocks{level_note}; use a smaller flow.block{pyr_hint}"
+    )]
+    FrameTooSmall { width: usize, height: usize, block: usize, level_note: String, pyr_hint: &'static str },
+    #[error(
+        "a tiled grid of {rows}x{cols} blocks of {block} px needs {need_w}x{need_h} px but the frame is {width}x{height}; use fewer rows/cols or flow.placement = \"spread\""
+    )]
+    TileGridTooLarge {
+        rows: usize,
+        cols: usize,
+        block: usize,
+        need_w: usize,
+        need_h: usize,
+        width: usize,
+        height: usize,
+    },
+    #[error("invalid flow parameters: {0}")]
+    Params(#[from] ConfigError),
+    #[error("flow backend {0} is not available: {1}")]
+    BackendUnavailable(&'static str, String),
+}
+
+/// A flow engine: computes the block flow field of a frame pair into a field it owns and reuses
+/// (no allocation per frame once the frame size is fixed).
+pub trait FlowEngine: Send {
+    /// Short name for logs and JSON (`"cpu"`, `"gpu"`).
+    fn name(&self) -> &'static str;
+    /// The parameters the engine was built with.
+    fn params(&self) -> &FlowParams;
+    /// Flow from frame `a` to frame `b` (same size), following the algorithm contract.
+    fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError>;
+}
+
+/// The engine for `params.backend`: `auto` and `cpu` give the CPU engine; `gpu` fails with
+/// [`FlowError::BackendUnavailable`] while no GPU engine is compiled into this build.
+pub fn engine(params: &FlowParams) -> Result<Box<dyn FlowEngine>, FlowError> {
+    match params.backend {
+        Backend::Auto | Backend::Cpu => Ok(Box::new(cpu::CpuFlow::new(params.clone())?)),
+        Backend::Gpu => Err(FlowError::BackendUnavailable(
+            "gpu",
+            "the GPU flow engine is not compiled into this build; use --flow-backend cpu or auto".into(),
+        )),
+    }
+}
+
+/// Checks that a frame pair can be processed with `params`: same size, large enough for the
+/// blocks at every pyramid level, and for a tiled grid.
+pub fn check_frames(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Result<(), FlowError> {
+    if (a.width(), a.height()) != (b.width(), b.height()) {
+        return Err(FlowError::SizeMismatch {
+            a_width: a.width(),
+            a_height: a.height(),
+            b_width: b.width(),
+            b_height: b.height(),
+        });
+    }
+    let (w, h) = (a.width(), a.height());
+    let levels = params.pyramid_levels.max(1);
+    for l in 0..levels {
+        let (wl, hl) = (w >> l, h >> l);
+        if wl < level_block(params.block, l) || hl < level_block(params.block, l) {
+            let level_note = if l == 0 {
+                String::new()
+            } else {
+                format!(" at pyramid level {l} ({wl}x{hl} after halving {l} times)")
+            };
+            let pyr_hint = if l == 0 { "" } else { " or fewer flow.pyramid_levels" };
+            return Err(FlowError::FrameTooSmall { width: w, height: h, block: params.block, level_note, pyr_hint });
+        }
+    }
+    if params.placement == Placement::Tile && (params.cols * params.block > w || params.rows * params.block > h) {
+        return Err(FlowError::TileGridTooLarge {
+            rows: params.rows,
+            cols: params.cols,
+            block: params.block,
+            need_w: params.cols * params.block,
+            need_h: params.rows * params.block,
+            width: w,
+            height: h,
+        });
+    }
+    Ok(())
+}
+
+/// Block side at pyramid level `l`: B halved `l` times, but not below 8 px (nor above B), so
+/// that a block covers the same part of the scene at every level.
+pub fn level_block(block: usize, l: usize) -> usize {
+    (block >> l).max(block.min(8))
+}
+
+/// Top-left pixel (x0, y0) in frame A of every block, row-major (`rows × cols`).
+///
+/// `Spread`: x0 = clamp(floor((2c+1)·W / (2·cols)) − B/2, 0, W − B), likewise y0 with rows
+/// and H: each block is centred on the centre pixel of its cell, pushed inside the frame when
+/// the cell is narrower than the block. At 512×512 with 16×16 blocks of 32 this tiles the
+/// frame exactly (x0 = 32c). `Tile`: x0 = c·B, y0 = r·B. The vector's (x, y) is the block's
+/// centre pixel (x0 + B/2, y0 + B/2), as in the data sets' `blocks32_tile.csv`.
+pub fn block_origins(params: &FlowParams, width: usize, height: usize) -> Vec<(usize, usize)> {
+    let b = params.block;
+    let spread = |i: usize, n: usize, len: usize| ((2 * i + 1) * len / (2 * n)).saturating_sub(b / 2).min(len - b);
+    let mut out = Vec::with_capacity(params.rows * params.cols);
+    for r in 0..params.rows {
+        for c in 0..params.cols {
+            out.push(match params.placement {
+                Placement::Spread => (spread(c, params.cols, width), spread(r, params.rows, height)),
+                Placement::Tile => (c * b, r * b),
+            });
+        }
+    }
+    out
 }

@@ -1,0 +1,98 @@
+//! CPU block flow at 1280×720 (C310 resolution), default parameters (16×16 blocks of 32 px,
+//! radius 16), on a real texture: the graf image (shared/data/graf_shift_512) mirrored-tiled to
+//! 1280×720. Frame B is frame A warped by a forward-motion zoom (1.5 % expansion about the
+//! centre: flow grows from 0 to ~11 px at the corners) or by the (5, −3) translation.
+//!
+//! `cargo bench --bench flow` (set FLOWNAV_DATA if the data folder is not found).
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use flownav::flow::cpu::CpuFlow;
+use flownav::flow::prefilter::{Scratch, highpass};
+use flownav::flow::sad::Kernel;
+use flownav::flow::{FlowEngine, FlowParams};
+use hal::LumaImage;
+use std::hint::black_box;
+use std::path::{Path, PathBuf};
+
+fn graf() -> LumaImage {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let candidates: Vec<PathBuf> = std::env::var_os("FLOWNAV_DATA")
+        .map(PathBuf::from)
+        .into_iter()
+        .chain([root.join("data"), root.join("../shared/data"), root.join("../../shared/data")])
+        .collect();
+    let path = candidates
+        .iter()
+        .map(|d| d.join("graf_shift_512/0000.png"))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| panic!("graf_shift_512/0000.png not found in {candidates:?}; set FLOWNAV_DATA"));
+    flownav::frames::load_luma(path).unwrap()
+}
+
+/// Bilinear sample of `src` mirrored infinitely in both directions.
+fn sample(src: &LumaImage, x: f64, y: f64) -> f64 {
+    let (w, h) = (src.width() as i64, src.height() as i64);
+    let mirror = |i: i64, n: i64| {
+        let m = i.rem_euclid(2 * n);
+        (if m < n { m } else { 2 * n - 1 - m }) as usize
+    };
+    let (x0, y0) = (x.floor(), y.floor());
+    let (fx, fy) = (x - x0, y - y0);
+    let p = |dx: i64, dy: i64| f64::from(src.get(mirror(x0 as i64 + dx, w), mirror(y0 as i64 + dy, h)));
+    (1.0 - fy) * ((1.0 - fx) * p(0, 0) + fx * p(1, 0)) + fy * ((1.0 - fx) * p(0, 1) + fx * p(1, 1))
+}
+
+/// Frames A and B where A(x, y) = B(x + u, y + v) for the flow `motion(x, y) = (u, v)`
+/// (B sampled by inverting the motion, which is exact for the affine motions used here).
+fn pair(src: &LumaImage, inverse: impl Fn(f64, f64) -> (f64, f64)) -> (LumaImage, LumaImage) {
+    let (w, h) = (1280, 720);
+    let a = LumaImage::from_fn(w, h, |x, y| sample(src, x as f64, y as f64).round() as u8);
+    let b = LumaImage::from_fn(w, h, |x, y| {
+        let (sx, sy) = inverse(x as f64, y as f64);
+        sample(src, sx, sy).round() as u8
+    });
+    (a, b)
+}
+
+fn bench(c: &mut Criterion) {
+    let src = graf();
+    let (cx, cy, s) = (640.0, 360.0, 1.015);
+    let zoom = pair(&src, |x, y| (cx + (x - cx) / s, cy + (y - cy) / s));
+    let shift = pair(&src, |x, y| (x - 5.0, y + 3.0));
+    let params = FlowParams::default();
+    let kernel = Kernel::detect(params.block);
+
+    let mut g = c.benchmark_group("flow_1280x720");
+    g.sample_size(40);
+    let mut eng = CpuFlow::new(params.clone()).unwrap();
+    eprintln!("SAD kernel: {}", eng.kernel().name());
+    let f = eng.compute(&zoom.0, &zoom.1).unwrap();
+    eprintln!("zoom pair: {}/{} vectors valid", f.valid_count(), f.vectors.len());
+    g.bench_function(format!("cpu_{}_zoom", kernel.name()), |bch| {
+        bch.iter(|| black_box(eng.compute(black_box(&zoom.0), black_box(&zoom.1)).unwrap().vectors.len()))
+    });
+    g.bench_function(format!("cpu_{}_shift", kernel.name()), |bch| {
+        bch.iter(|| black_box(eng.compute(black_box(&shift.0), black_box(&shift.1)).unwrap().vectors.len()))
+    });
+    let mut pyr = CpuFlow::new(FlowParams { pyramid_levels: 3, ..params.clone() }).unwrap();
+    g.bench_function(format!("cpu_{}_zoom_pyramid3", kernel.name()), |bch| {
+        bch.iter(|| black_box(pyr.compute(black_box(&zoom.0), black_box(&zoom.1)).unwrap().vectors.len()))
+    });
+    let mut scalar = CpuFlow::with_kernel(params.clone(), Kernel::Scalar);
+    g.sample_size(10);
+    g.bench_function("cpu_scalar_zoom", |bch| {
+        bch.iter(|| black_box(scalar.compute(black_box(&zoom.0), black_box(&zoom.1)).unwrap().vectors.len()))
+    });
+    g.sample_size(40);
+    let (mut out, mut scratch) = (LumaImage::default(), Scratch::default());
+    g.bench_function("prefilter_one_frame", |bch| {
+        bch.iter(|| {
+            highpass(black_box(&zoom.0), params.prefilter_radius, &mut out, &mut scratch);
+            black_box(out.data()[0])
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

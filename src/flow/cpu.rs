@@ -1,0 +1,613 @@
+//! The CPU block-matching engine: exact results of the algorithm contract (`docs/flow.md`,
+//! written out literally in [`super::reference`]) at a fraction of the exhaustive cost.
+//!
+//! Where the speed comes from, without shrinking the work the contract defines:
+//! - each frame is prefiltered once ([`super::prefilter::highpass`]), so the per-candidate cost
+//!   is a byte SAD that runs on `vpsadbw` ([`super::sad`]);
+//! - the block of A is copied into a contiguous buffer, the window of B is read in place;
+//! - early termination: a candidate is abandoned as soon as its partial SAD exceeds
+//!   (1 + ambiguity_ratio) × the best full cost so far. Before the raster scan, the window
+//!   centre and the results of the left and upper neighbour blocks are evaluated, so the bound
+//!   is tight from the start (flow is smooth). Abandoned candidates provably cannot be the best,
+//!   tie with it, or be an ambiguity competitor, so the result equals the exhaustive search.
+
+use super::prefilter::{self, Scratch};
+use super::sad::Kernel;
+use super::{FlowEngine, FlowError, FlowField, FlowParams, FlowVector, Validity};
+use hal::LumaImage;
+
+/// A candidate that was abandoned by early termination: its cost exceeds the bound.
+const ABANDONED: u32 = u32::MAX;
+/// A candidate not evaluated yet.
+const PENDING: u32 = u32::MAX - 1;
+
+/// Buffers of one pyramid level (level 0 = full resolution; its raw frames are the inputs).
+#[derive(Debug, Default)]
+struct Level {
+    raw_a: LumaImage,
+    raw_b: LumaImage,
+    hp_a: LumaImage,
+    hp_b: LumaImage,
+}
+
+/// The CPU engine. Construct once, call [`FlowEngine::compute`] per frame pair; all buffers are
+/// kept and reused while the frame size stays the same.
+#[derive(Debug)]
+pub struct CpuFlow {
+    params: FlowParams,
+    kernel: Kernel,
+    /// SAD kernel per pyramid level (the block shrinks at coarser levels).
+    kernels: Vec<Kernel>,
+    levels: Vec<Level>,
+    scratch: Scratch,
+    origins: Vec<(usize, usize)>,
+    disp: Vec<(i32, i32)>,
+    prev: Vec<(i32, i32)>,
+    flags: Vec<(bool, bool)>,
+    block_buf: Vec<u8>,
+    costs: Vec<u32>,
+    field: FlowField,
+}
+
+impl CpuFlow {
+    /// An engine for `params` (validated here).
+    pub fn new(params: FlowParams) -> Result<Self, FlowError> {
+        params.validate()?;
+        let kernel = Kernel::detect(params.block);
+        Ok(Self::with_kernel(params, kernel))
+    }
+
+    /// Like [`CpuFlow::new`] with an explicit SAD kernel (tests and benchmarks compare them).
+    /// Panics when `kernel` cannot run blocks of `params.block` on this CPU.
+    pub fn with_kernel(params: FlowParams, kernel: Kernel) -> Self {
+        assert!(kernel.supports(params.block), "SAD kernel {kernel:?} cannot run {} px blocks here", params.block);
+        let nlev = params.pyramid_levels.max(1);
+        let levels = (0..nlev).map(|_| Level::default()).collect();
+        let kernels = (0..nlev)
+            .map(|l| {
+                let b = super::level_block(params.block, l);
+                if kernel.supports(b) { kernel } else { Kernel::detect(b).min_with(kernel) }
+            })
+            .collect();
+        Self {
+            params,
+            kernel,
+            kernels,
+            levels,
+            scratch: Scratch::default(),
+            origins: Vec::new(),
+            disp: Vec::new(),
+            prev: Vec::new(),
+            flags: Vec::new(),
+            block_buf: Vec::new(),
+            costs: Vec::new(),
+            field: FlowField::default(),
+        }
+    }
+
+    /// The SAD kernel in use.
+    pub fn kernel(&self) -> Kernel {
+        self.kernel
+    }
+
+    /// The last computed field.
+    pub fn field(&self) -> &FlowField {
+        &self.field
+    }
+}
+
+impl FlowEngine for CpuFlow {
+    fn name(&self) -> &'static str {
+        "cpu"
+    }
+
+    fn params(&self) -> &FlowParams {
+        &self.params
+    }
+
+    fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError> {
+        super::check_frames(&self.params, a, b)?;
+        let p = &self.params;
+        let (w, h, bs) = (a.width(), a.height(), p.block);
+        let nlev = self.levels.len();
+
+        // Pyramid and prefilter: each frame once per level.
+        for l in 0..nlev {
+            let (done, rest) = self.levels.split_at_mut(l);
+            let lev = &mut rest[0];
+            let (src_a, src_b) = if l == 0 {
+                (a, b)
+            } else {
+                let prev = &done[l - 1];
+                let (ra, rb) = if l == 1 { (a, b) } else { (&prev.raw_a, &prev.raw_b) };
+                prefilter::downsample(ra, &mut lev.raw_a);
+                prefilter::downsample(rb, &mut lev.raw_b);
+                (&lev.raw_a, &lev.raw_b)
+            };
+            prefilter::highpass(src_a, p.prefilter_radius, &mut lev.hp_a, &mut self.scratch);
+            prefilter::highpass(src_b, p.prefilter_radius, &mut lev.hp_b, &mut self.scratch);
+        }
+
+        self.origins.clear();
+        self.origins.extend(super::block_origins(p, w, h));
+        let n = self.origins.len();
+        self.disp.clear();
+        self.disp.resize(n, (0, 0));
+        self.flags.clear();
+        self.flags.resize(n, (false, false));
+        self.block_buf.resize(bs * bs, 0);
+        self.field.rows = p.rows;
+        self.field.cols = p.cols;
+        self.field.width = w;
+        self.field.height = h;
+        self.field.vectors.clear();
+
+        let amb_q8 = p.ambiguity_q8();
+        for l in (0..nlev).rev() {
+            let lev = &self.levels[l];
+            let (wl, hl) = (lev.hp_a.width(), lev.hp_a.height());
+            let coarsest = l == nlev - 1;
+            let radius = if coarsest { p.radius } else { p.refine_radius } as i32;
+            let bl = super::level_block(bs, l);
+            let kernel = self.kernels[l];
+            self.prev.clone_from(&self.disp);
+            for i in 0..n {
+                let (r, c) = (i / p.cols, i % p.cols);
+                let (ox, oy) = self.origins[i];
+                let x0 = level_origin(ox, bs, bl, l, wl);
+                let y0 = level_origin(oy, bs, bl, l, hl);
+                let centre = if coarsest {
+                    (0, 0)
+                } else {
+                    let m = median3x3(&self.prev, p.rows, p.cols, r, c);
+                    (2 * m.0, 2 * m.1)
+                };
+                let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
+                let blk = &mut self.block_buf[..bl * bl];
+                copy_block(&lev.hp_a, x0, y0, bl, blk);
+                let mut preds = [None; 3];
+                preds[0] = Some(win.centre);
+                if c > 0 {
+                    preds[1] = Some(self.disp[i - 1]);
+                }
+                if r > 0 {
+                    preds[2] = Some(self.disp[i - p.cols]);
+                }
+                let found = search(kernel, blk, &lev.hp_b, x0, y0, bl, &win, &preds, amb_q8, &mut self.costs);
+                self.disp[i] = found.d;
+                self.flags[i].0 |= found.edge;
+                self.flags[i].1 |= found.ambiguous;
+                if l == 0 {
+                    let textureless =
+                        16 * texture(&self.block_buf, bs) < p.min_texture_q4() * (2 * bs * (bs - 1)) as u64;
+                    let validity = if textureless {
+                        Validity::Textureless
+                    } else if self.flags[i].0 {
+                        Validity::OutOfFrame
+                    } else if self.flags[i].1 {
+                        Validity::Ambiguous
+                    } else {
+                        Validity::Valid
+                    };
+                    let (d, blk, hb) = (found.d, &self.block_buf, &lev.hp_b);
+                    let s = |e: (i32, i32)| win.contains(e).then(|| ssd(blk, hb, x0, y0, bs, e));
+                    let s0 = ssd(blk, hb, x0, y0, bs, d);
+                    let du = parabola(s((d.0 - 1, d.1)), s0, s((d.0 + 1, d.1)));
+                    let dv = parabola(s((d.0, d.1 - 1)), s0, s((d.0, d.1 + 1)));
+                    self.field.vectors.push(FlowVector {
+                        x: (ox + bs / 2) as f32,
+                        y: (oy + bs / 2) as f32,
+                        u: (f64::from(d.0) + du) as f32,
+                        v: (f64::from(d.1) + dv) as f32,
+                        validity,
+                        cost: found.cost as f32 / (bs * bs) as f32,
+                    });
+                }
+            }
+        }
+        Ok(&self.field)
+    }
+}
+
+/// Top-left coordinate of a block at pyramid level `l`: its level-0 centre pixel (o + B/2)
+/// halved `l` times, minus B_l/2, clamped into [0, len_l − B_l].
+pub(crate) fn level_origin(o: usize, block: usize, block_l: usize, l: usize, len_l: usize) -> usize {
+    ((o + block / 2) >> l).saturating_sub(block_l / 2).min(len_l - block_l)
+}
+
+/// Component-wise median of the displacements of block (r, c) and its grid neighbours
+/// (3×3, cut at the grid edge: 4, 6 or 9 values; the lower median for an even count).
+pub(crate) fn median3x3(d: &[(i32, i32)], rows: usize, cols: usize, r: usize, c: usize) -> (i32, i32) {
+    let (mut xs, mut ys) = ([0i32; 9], [0i32; 9]);
+    let mut n = 0;
+    for rr in r.saturating_sub(1)..=(r + 1).min(rows - 1) {
+        for cc in c.saturating_sub(1)..=(c + 1).min(cols - 1) {
+            (xs[n], ys[n]) = d[rr * cols + cc];
+            n += 1;
+        }
+    }
+    xs[..n].sort_unstable();
+    ys[..n].sort_unstable();
+    (xs[(n - 1) / 2], ys[(n - 1) / 2])
+}
+
+/// The candidate displacements of one block at one level: [lo, hi] in x and y.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Window {
+    /// The window centre after clamping into the feasible displacements (tie-break origin).
+    pub centre: (i32, i32),
+    pub lo: (i32, i32),
+    pub hi: (i32, i32),
+}
+
+impl Window {
+    /// Displacements d with |d − centre|∞ ≤ radius whose block at (x0+dx, y0+dy) lies inside
+    /// the `w`×`h` frame B; `centre` is first clamped to the feasible range so the window is never
+    /// empty.
+    pub fn new(x0: usize, y0: usize, block: usize, w: usize, h: usize, centre: (i32, i32), radius: i32) -> Self {
+        let fmin = (-(x0 as i32), -(y0 as i32));
+        let fmax = ((w - block - x0) as i32, (h - block - y0) as i32);
+        let cx = centre.0.clamp(fmin.0, fmax.0);
+        let cy = centre.1.clamp(fmin.1, fmax.1);
+        Self {
+            centre: (cx, cy),
+            lo: ((cx - radius).max(fmin.0), (cy - radius).max(fmin.1)),
+            hi: ((cx + radius).min(fmax.0), (cy + radius).min(fmax.1)),
+        }
+    }
+
+    pub fn width(&self) -> usize {
+        (self.hi.0 - self.lo.0 + 1) as usize
+    }
+
+    pub fn contains(&self, d: (i32, i32)) -> bool {
+        (self.lo.0..=self.hi.0).contains(&d.0) && (self.lo.1..=self.hi.1).contains(&d.1)
+    }
+
+    fn index(&self, d: (i32, i32)) -> usize {
+        (d.1 - self.lo.1) as usize * self.width() + (d.0 - self.lo.0) as usize
+    }
+
+    /// Tie-break key: smaller squared distance to the centre, then smaller dy, then smaller dx.
+    pub fn key(&self, d: (i32, i32)) -> (i32, i32, i32) {
+        let (ex, ey) = (d.0 - self.centre.0, d.1 - self.centre.1);
+        (ex * ex + ey * ey, d.1, d.0)
+    }
+}
+
+/// Result of one block's search at one level.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Found {
+    pub d: (i32, i32),
+    pub cost: u32,
+    pub edge: bool,
+    pub ambiguous: bool,
+}
+
+/// Copies the `block`×`block` block at (x0, y0) of `img` into `out` (rows contiguous).
+pub(crate) fn copy_block(img: &LumaImage, x0: usize, y0: usize, block: usize, out: &mut [u8]) {
+    for (y, dst) in out.chunks_exact_mut(block).take(block).enumerate() {
+        dst.copy_from_slice(&img.row(y0 + y)[x0..x0 + block]);
+    }
+}
+
+/// Gradient energy of a block: Σ|a(x+1,y) − a(x,y)| + Σ|a(x,y+1) − a(x,y)|.
+pub(crate) fn texture(a: &[u8], block: usize) -> u64 {
+    let mut g = 0u64;
+    for y in 0..block {
+        let row = &a[y * block..(y + 1) * block];
+        g += row.windows(2).map(|p| u64::from(p[0].abs_diff(p[1]))).sum::<u64>();
+        if y + 1 < block {
+            let next = &a[(y + 1) * block..(y + 2) * block];
+            g += row.iter().zip(next).map(|(&p, &q)| u64::from(p.abs_diff(q))).sum::<u64>();
+        }
+    }
+    g
+}
+
+/// Sum of squared differences between block `a` and the block of `b` at (x0+dx, y0+dy): the
+/// cost the sub-pixel fit uses (SSD is quadratic in a small shift, SAD is V-shaped and would
+/// bias a parabola towards the integer).
+pub(crate) fn ssd(a: &[u8], b: &LumaImage, x0: usize, y0: usize, block: usize, d: (i32, i32)) -> u64 {
+    let (bx, by) = ((x0 as i32 + d.0) as usize, (y0 as i32 + d.1) as usize);
+    let mut s = 0u64;
+    for (y, ar) in a.chunks_exact(block).take(block).enumerate() {
+        let br = &b.row(by + y)[bx..bx + block];
+        s += u64::from(ar.iter().zip(br).map(|(&p, &q)| (i32::from(p) - i32::from(q)).pow(2) as u32).sum::<u32>());
+    }
+    s
+}
+
+/// Sub-pixel offset along one axis by a parabola through the SSD at −1, 0, +1:
+/// δ = (s₋ − s₊) / (2 (s₋ − 2s₀ + s₊)) when both neighbours lie in the window, s₀ > 0 (zero is
+/// an exact match: the blocks are identical) and the denominator is positive, else 0;
+/// clamped to [−0.5, 0.5].
+pub(crate) fn parabola(sm: Option<u64>, s0: u64, sp: Option<u64>) -> f64 {
+    match (sm, sp) {
+        (Some(m), Some(p)) if s0 > 0 => {
+            let (m, s0, p) = (m as i64, s0 as i64, p as i64);
+            let den = m - 2 * s0 + p;
+            if den > 0 { ((m - p) as f64 / (2 * den) as f64).clamp(-0.5, 0.5) } else { 0.0 }
+        }
+        _ => 0.0,
+    }
+}
+
+/// Searches the window for the block `a` (prefiltered, contiguous) in `b` (prefiltered frame B
+/// of the same level); see the module docs for why early termination gives the exhaustive
+/// answer.
+#[allow(clippy::too_many_arguments)]
+fn search(
+    kernel: Kernel,
+    a: &[u8],
+    b: &LumaImage,
+    x0: usize,
+    y0: usize,
+    block: usize,
+    win: &Window,
+    preds: &[Option<(i32, i32)>],
+    amb_q8: u64,
+    costs: &mut Vec<u32>,
+) -> Found {
+    let stride = b.width();
+    let data = b.data();
+    let gw = win.width();
+    let gh = (win.hi.1 - win.lo.1 + 1) as usize;
+    costs.clear();
+    costs.resize(gw * gh, PENDING);
+    let offset = |d: (i32, i32)| (y0 as i32 + d.1) as usize * stride + (x0 as i32 + d.0) as usize;
+    let bound = |best: u32| (u64::from(best) * (256 + amb_q8) / 256).min(u64::from(PENDING - 1)) as u32;
+
+    let mut best = (u32::MAX, (i32::MAX, i32::MAX, i32::MAX), (0, 0));
+    let consider = |d: (i32, i32), c: u32, best: &mut (u32, (i32, i32, i32), (i32, i32))| {
+        let cand = (c, win.key(d), d);
+        if (cand.0, cand.1) < (best.0, best.1) {
+            *best = cand;
+        }
+    };
+    for d in preds.iter().flatten().copied() {
+        if win.contains(d) && costs[win.index(d)] == PENDING {
+            let c = kernel.sad(a, data, offset(d), stride, block, u32::MAX).expect("no limit");
+            costs[win.index(d)] = c;
+            consider(d, c, &mut best);
+        }
+    }
+    for dy in win.lo.1..=win.hi.1 {
+        let row = (dy - win.lo.1) as usize * gw;
+        for dx in win.lo.0..=win.hi.0 {
+            let gi = row + (dx - win.lo.0) as usize;
+            if costs[gi] != PENDING {
+                continue;
+            }
+            let limit = if best.0 == u32::MAX { u32::MAX } else { bound(best.0) };
+            match kernel.sad(a, data, offset((dx, dy)), stride, block, limit) {
+                Some(c) => {
+                    costs[gi] = c;
+                    consider((dx, dy), c, &mut best);
+                }
+                None => costs[gi] = ABANDONED,
+            }
+        }
+    }
+    let (c1, _, d1) = best;
+
+    let edge = d1.0 == win.lo.0 || d1.0 == win.hi.0 || d1.1 == win.lo.1 || d1.1 == win.hi.1;
+    let thr = u64::from(c1) * (256 + amb_q8);
+    let mut ambiguous = false;
+    'scan: for gy in 0..gh {
+        for gx in 0..gw {
+            let c = costs[gy * gw + gx];
+            if c == ABANDONED || u64::from(c) * 256 > thr {
+                continue;
+            }
+            let d = (win.lo.0 + gx as i32, win.lo.1 + gy as i32);
+            if (d.0 - d1.0).abs().max((d.1 - d1.1).abs()) < 2 {
+                continue;
+            }
+            let is_min = (-1..=1).all(|ny: i32| {
+                (-1..=1).all(|nx: i32| {
+                    let e = (d.0 + nx, d.1 + ny);
+                    !win.contains(e) || costs[win.index(e)] >= c
+                })
+            });
+            if is_min {
+                ambiguous = true;
+                break 'scan;
+            }
+        }
+    }
+
+    Found { d: d1, cost: c1, edge, ambiguous }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::flow::reference::reference_flow;
+    use proptest::prelude::*;
+
+    /// Deterministic white-ish noise texture, blurred by a 3×3 box so that it is not pure noise.
+    fn texture_fn(seed: u64) -> impl Fn(i64, i64) -> u8 {
+        move |x: i64, y: i64| {
+            let h = |x: i64, y: i64| {
+                let mut v = (x as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+                    ^ (y as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+                    ^ seed;
+                v ^= v >> 29;
+                v = v.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+                v ^= v >> 32;
+                (v & 255) as u32
+            };
+            let mut s = 0;
+            for j in -1..=1 {
+                for i in -1..=1 {
+                    s += h(x + i, y + j);
+                }
+            }
+            (s / 9) as u8
+        }
+    }
+
+    /// Frames A and B of a texture translated by (dx, dy): A(x, y) = B(x + dx, y + dy).
+    fn translated(w: usize, h: usize, dx: i64, dy: i64, seed: u64) -> (LumaImage, LumaImage) {
+        let t = texture_fn(seed);
+        let a = LumaImage::from_fn(w, h, |x, y| t(x as i64, y as i64));
+        let b = LumaImage::from_fn(w, h, |x, y| t(x as i64 - dx, y as i64 - dy));
+        (a, b)
+    }
+
+    fn small_params() -> FlowParams {
+        FlowParams { rows: 3, cols: 4, block: 16, radius: 6, ..FlowParams::default() }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(24))]
+
+        /// The fast engine (early termination, predictors, SIMD) gives exactly the exhaustive
+        /// contract, on translated and on unrelated frames, with and without the pyramid.
+        #[test]
+        fn equals_reference(seed in any::<u64>(), dx in -9i64..=9, dy in -9i64..=9, k in 0usize..=4,
+                            levels in 1usize..=2, unrelated in any::<bool>(), amb in 0u32..3) {
+            let params = FlowParams { prefilter_radius: k, pyramid_levels: levels, refine_radius: 2,
+                                      ambiguity_ratio: [0.0, 0.1, 0.5][amb as usize], ..small_params() };
+            let (a, mut b) = translated(96, 72, dx, dy, seed);
+            if unrelated {
+                b = translated(96, 72, 0, 0, seed ^ 0x55).0;
+            }
+            let want = reference_flow(&params, &a, &b).unwrap();
+            for kernel in [Kernel::detect(16), Kernel::Scalar] {
+                let mut eng = CpuFlow::with_kernel(params.clone(), kernel);
+                let got = eng.compute(&a, &b).unwrap();
+                prop_assert_eq!(got, &want);
+            }
+        }
+
+        /// An exact integer translation within the radius is recovered exactly (no sub-pixel
+        /// residue) by every block whose match lies inside frame B.
+        #[test]
+        fn integer_translation_is_exact(seed in any::<u64>(), dx in -6i64..=6, dy in -6i64..=6) {
+            let params = small_params();
+            let (a, b) = translated(96, 72, dx, dy, seed);
+            let mut eng = CpuFlow::new(params.clone()).unwrap();
+            let f = eng.compute(&a, &b).unwrap();
+            let k = params.prefilter_radius as i64;
+            for v in &f.vectors {
+                let (x0, y0) = (v.x as i64 - 8, v.y as i64 - 8);
+                // Inside B, and far enough from both frames' borders that the prefilter window
+                // saw the same pixels in A and B (edge replication differs otherwise).
+                let inside = |m: i64| x0 + dx >= m && y0 + dy >= m && x0 + dx + 16 + m <= 96 && y0 + dy + 16 + m <= 72;
+                let clear = inside(k) && x0 >= k && y0 >= k && x0 + 16 + k <= 96 && y0 + 16 + k <= 72;
+                if clear {
+                    prop_assert_eq!((v.u, v.v), (dx as f32, dy as f32), "block at {:?}", (v.x, v.y));
+                } else if inside(0) {
+                    prop_assert_eq!((v.u.round(), v.v.round()), (dx as f32, dy as f32), "block at {:?}", (v.x, v.y));
+                }
+            }
+        }
+    }
+
+    /// A smooth texture (sum of sinusoids, sampled exactly) moved by a sub-pixel amount: every
+    /// interior block recovers it within 0.1 px.
+    #[test]
+    fn subpixel_translation_within_tenth_of_pixel() {
+        let t = |x: f64, y: f64| {
+            128.0
+                + 40.0 * (0.42 * x + 0.15 * y).sin()
+                + 35.0 * (-0.15 * x + 0.43 * y + 1.0).sin()
+                + 25.0 * (0.33 * x - 0.32 * y + 2.0).cos()
+        };
+        let params = FlowParams { rows: 4, cols: 4, block: 32, radius: 4, ..FlowParams::default() };
+        let mut eng = CpuFlow::new(params).unwrap();
+        let mut worst = 0.0f64;
+        for &(u, v) in &[(0.3, -0.2), (1.45, 0.7), (-2.25, 0.5), (0.1, 0.9), (-0.6, -1.35)] {
+            let a = LumaImage::from_fn(192, 192, |x, y| t(x as f64, y as f64).round() as u8);
+            let b = LumaImage::from_fn(192, 192, |x, y| t(x as f64 - u, y as f64 - v).round() as u8);
+            let f = eng.compute(&a, &b).unwrap().clone();
+            for vec in &f.vectors {
+                assert!(vec.valid(), "{vec:?}");
+                let e = ((f64::from(vec.u) - u).powi(2) + (f64::from(vec.v) - v).powi(2)).sqrt();
+                worst = worst.max(e);
+                assert!(e < 0.1, "motion ({u}, {v}) estimated ({}, {}), error {e:.3}", vec.u, vec.v);
+            }
+        }
+        eprintln!("worst sub-pixel endpoint error {worst:.3} px");
+    }
+
+    /// A flat block (and one with only faint noise) is textureless; a textured one is not.
+    #[test]
+    fn textureless_block_is_invalid() {
+        let tex = texture_fn(7);
+        let noise = texture_fn(8);
+        let params = FlowParams { rows: 1, cols: 3, block: 32, radius: 4, ..FlowParams::default() };
+        // Left third flat, middle third faint noise (±1 grey level), right third textured.
+        let img = |shift: i64| {
+            let (tex, noise) = (&tex, &noise);
+            LumaImage::from_fn(120, 40, move |x, y| match x {
+                0..40 => 90,
+                40..80 => 90 + (noise(x as i64, y as i64) % 3),
+                _ => tex(x as i64 - shift, y as i64),
+            })
+        };
+        let (a, b) = (img(0), img(2));
+        let mut eng = CpuFlow::new(params).unwrap();
+        let f = eng.compute(&a, &b).unwrap();
+        assert_eq!(f.at(0, 0).validity, Validity::Textureless);
+        assert_eq!(f.at(0, 1).validity, Validity::Textureless);
+        assert_eq!(f.at(0, 2).validity, Validity::Valid);
+        assert!((f.at(0, 2).u - 2.0).abs() < 0.05 && f.at(0, 2).v.abs() < 0.05, "{:?}", f.at(0, 2));
+    }
+
+    /// A periodic texture whose period is inside the search window is ambiguous.
+    #[test]
+    fn periodic_texture_is_ambiguous() {
+        let params = FlowParams { rows: 1, cols: 1, block: 32, radius: 12, ..FlowParams::default() };
+        let a = LumaImage::from_fn(96, 96, |x, y| if (x / 4 + y / 4) % 2 == 0 { 40 } else { 200 });
+        let mut eng = CpuFlow::new(params).unwrap();
+        assert_eq!(eng.compute(&a, &a).unwrap().at(0, 0).validity, Validity::Ambiguous);
+    }
+
+    /// Motion beyond the radius is found with the pyramid; without it the block is flagged.
+    #[test]
+    fn pyramid_finds_motion_beyond_radius() {
+        let (a, b) = translated(512, 384, 27, -11, 3);
+        let base = FlowParams { rows: 2, cols: 2, block: 32, radius: 8, ..FlowParams::default() };
+        let mut single = CpuFlow::new(base.clone()).unwrap();
+        let f = single.compute(&a, &b).unwrap();
+        assert!(f.vectors.iter().all(|v| v.validity != Validity::Valid || (v.u, v.v) != (27.0, -11.0)));
+        let mut pyr = CpuFlow::new(FlowParams { pyramid_levels: 3, ..base }).unwrap();
+        let f = pyr.compute(&a, &b).unwrap();
+        for v in &f.vectors {
+            assert_eq!((v.u, v.v, v.validity), (27.0, -11.0, Validity::Valid), "{v:?}");
+        }
+    }
+
+    #[test]
+    fn bad_frames_give_clear_errors() {
+        let mut eng = CpuFlow::new(FlowParams::default()).unwrap();
+        let e = eng.compute(&LumaImage::new(640, 480), &LumaImage::new(640, 360)).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("640x480") && e.contains("640x360"), "{e}");
+        let e = eng.compute(&LumaImage::new(20, 20), &LumaImage::new(20, 20)).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("too small") && e.contains("flow.block"), "{e}");
+        let e = eng.compute(&LumaImage::new(0, 0), &LumaImage::new(0, 0)).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("too small"), "{e}");
+        let mut pyr = CpuFlow::new(FlowParams { pyramid_levels: 6, ..FlowParams::default() }).unwrap();
+        let e = pyr.compute(&LumaImage::new(200, 200), &LumaImage::new(200, 200)).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("pyramid level 5") && e.contains("pyramid_levels"), "{e}");
+        let tile = FlowParams { placement: crate::flow::Placement::Tile, ..FlowParams::default() };
+        let mut eng = CpuFlow::new(tile).unwrap();
+        let e = eng.compute(&LumaImage::new(500, 600), &LumaImage::new(500, 600)).map(|_| ()).unwrap_err().to_string();
+        assert!(e.contains("512x512") && e.contains("500x600"), "{e}");
+        assert!(CpuFlow::new(FlowParams { radius: 0, ..FlowParams::default() }).is_err());
+    }
+
+    #[test]
+    fn spread_placement_tiles_512_exactly() {
+        let o = crate::flow::block_origins(&FlowParams::default(), 512, 512);
+        assert_eq!(o.len(), 256);
+        for (i, &(x0, y0)) in o.iter().enumerate() {
+            assert_eq!((x0, y0), (32 * (i % 16), 32 * (i / 16)));
+        }
+        let o = crate::flow::block_origins(&FlowParams::default(), 1280, 720);
+        assert_eq!((o[0], o[255]), ((24, 6), (1224, 681)));
+    }
+}
