@@ -45,10 +45,7 @@ impl CameraPose {
     #[inline]
     pub fn direction(&self, xn: f64, yn: f64) -> ([f64; 2], f64) {
         let k = self.cos_p - yn * self.sin_p;
-        (
-            [-xn * self.left[0] + k * self.fwd[0], -xn * self.left[1] + k * self.fwd[1]],
-            -self.sin_p - yn * self.cos_p,
-        )
+        ([-xn * self.left[0] + k * self.fwd[0], -xn * self.left[1] + k * self.fwd[1]], -self.sin_p - yn * self.cos_p)
     }
 
     /// A point in the optical frame → world (x, y, z).
@@ -211,8 +208,13 @@ mod tests {
         let world = crate::World::office();
         let renderer = Arc::new(Renderer::new(&world, &calib));
         let pose = Arc::new(Mutex::new(world.start));
-        let mut cam =
-            RenderedCamera::with_shared_pose(renderer.clone(), 10.0, Pacing::Simulated, Effects::default(), pose.clone());
+        let mut cam = RenderedCamera::with_shared_pose(
+            renderer.clone(),
+            10.0,
+            Pacing::Simulated,
+            Effects::default(),
+            pose.clone(),
+        );
         let f0 = cam.capture().unwrap();
         assert_eq!((f0.seq, f0.t_ns), (0, 0));
         assert_eq!(f0.image, renderer.render(world.start));

@@ -35,7 +35,10 @@ pub enum SurfaceKind {
     Floor,
     Ceiling,
     /// A wall segment: indices into `World::walls` and its segment.
-    Wall { wall: usize, segment: usize },
+    Wall {
+        wall: usize,
+        segment: usize,
+    },
     /// Side or top of `World::boxes[i]`.
     Box(usize),
     /// `World::cylinders[i]`.
@@ -494,7 +497,17 @@ impl Renderer {
                     n = [-n[0], -n[1]];
                 }
                 let shade = light(n);
-                Some(Span { s_in: s, s_out: s, z0, z1, solid: false, surface, tu: (along0 + t * len) as f32, normal: n, shade })
+                Some(Span {
+                    s_in: s,
+                    s_out: s,
+                    z0,
+                    z1,
+                    solid: false,
+                    surface,
+                    tu: (along0 + t * len) as f32,
+                    normal: n,
+                    shade,
+                })
             }
             Prim::Box { center, cos, sin, hx, hy, h, surface } => {
                 let o = [c[0] - center[0], c[1] - center[1]];

@@ -354,7 +354,12 @@ impl World {
         }
         for c in &raw.cylinders {
             let c = c.get_ref();
-            world.cylinders.push(Cylinder { name: c.name.clone(), center: c.center, radius: c.radius, height: c.height });
+            world.cylinders.push(Cylinder {
+                name: c.name.clone(),
+                center: c.center,
+                radius: c.radius,
+                height: c.height,
+            });
         }
         world.check().map_err(|p| {
             let line = match &p.item {
@@ -398,10 +403,7 @@ impl World {
                     return Err(problem(
                         item(),
                         format!("{label}.points"),
-                        format!(
-                            "segment {k} from {:?} to {:?} has zero length; remove the repeated point",
-                            s[0], s[1]
-                        ),
+                        format!("segment {k} from {:?} to {:?} has zero length; remove the repeated point", s[0], s[1]),
                     ));
                 }
             }
@@ -578,15 +580,7 @@ impl World {
                 let mut cursor = 0.0;
                 let mut push = |t0: f64, t1: f64, z0: f64, z1: f64| {
                     if t1 - t0 > 1e-6 && z1 - z0 > 1e-6 {
-                        out.push(Face {
-                            a: at(t0),
-                            b: at(t1),
-                            z0,
-                            z1,
-                            wall: wi,
-                            segment: si,
-                            along0: along0 + t0,
-                        });
+                        out.push(Face { a: at(t0), b: at(t1), z0, z1, wall: wi, segment: si, along0: along0 + t0 });
                     }
                 };
                 for &(da, db, dh) in &openings {
@@ -627,10 +621,8 @@ impl World {
     pub fn with_random_obstacles(&self, seed: u64) -> Result<World, WorldError> {
         let origin = if self.name.is_empty() { "(unnamed)".to_string() } else { self.name.clone() };
         let fail = |problem: String| WorldError::Placement { origin: origin.clone(), problem };
-        let r = self
-            .random
-            .as_ref()
-            .ok_or_else(|| fail("the world has no [random] section describing the lane".into()))?;
+        let r =
+            self.random.as_ref().ok_or_else(|| fail("the world has no [random] section describing the lane".into()))?;
         let len = dist(r.from, r.to);
         let u = [(r.to[0] - r.from[0]) / len, (r.to[1] - r.from[1]) / len];
         let n = [-u[1], u[0]];
@@ -730,7 +722,8 @@ impl World {
     }
 
     pub(crate) fn obstacle_shapes(&self) -> Vec<Shape> {
-        let boxes = self.boxes.iter().enumerate().map(|(i, b)| Shape::Box { index: i, corners: box_corners(b), b: b.clone() });
+        let boxes =
+            self.boxes.iter().enumerate().map(|(i, b)| Shape::Box { index: i, corners: box_corners(b), b: b.clone() });
         let cyl = self.cylinders.iter().enumerate().map(|(i, c)| Shape::Cyl { index: i, c: c.clone() });
         boxes.chain(cyl).collect()
     }
@@ -809,7 +802,9 @@ impl Shape {
                 if point_in_convex(p, corners) {
                     0.0
                 } else {
-                    (0..4).map(|k| point_segment_distance(p, corners[k], corners[(k + 1) % 4])).fold(f64::INFINITY, f64::min)
+                    (0..4)
+                        .map(|k| point_segment_distance(p, corners[k], corners[(k + 1) % 4]))
+                        .fold(f64::INFINITY, f64::min)
                 }
             }
             Shape::Cyl { c, .. } => (dist(p, c.center) - c.radius).max(0.0),
