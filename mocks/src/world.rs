@@ -171,7 +171,7 @@ pub struct World {
 /// What went wrong with a world.
 #[derive(Debug, thiserror::Error)]
 pub enum WorldError {
-    #[error("cannot read world file {path}: {source} (pass --world FILE, or leave it out for the built-in office)")]
+    #[error("cannot read world file {path} (pass --world FILE, or leave it out for the built-in office)")]
     Read { path: String, source: std::io::Error },
     #[error("world {origin}, line {line}, column {column}: {message}")]
     Syntax { origin: String, line: usize, column: usize, message: String },
@@ -381,7 +381,7 @@ impl World {
         self.check().map_err(|p| WorldError::Invalid {
             origin: origin.into(),
             line: None,
-            field: field_path(&p.item, &p.field),
+            field: p.field,
             problem: p.problem,
         })
     }
@@ -752,10 +752,6 @@ pub struct Face {
 
 fn wall_label(i: usize, w: &Wall) -> String {
     if w.name.is_empty() { format!("walls[{i}]") } else { format!("walls[{i}] ({})", w.name) }
-}
-
-fn field_path(_item: &Item, field: &str) -> String {
-    field.to_string()
 }
 
 /// Corners of a box's footprint, counter-clockwise.
