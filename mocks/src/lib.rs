@@ -4,3 +4,21 @@
 //!
 //! | module | owns |
 //! |---|---|
+//! | [`world`] | worlds as TOML floor plans (walls, doors, boxes, cylinders, named places, start), validation, random obstacle placement |
+//! | [`render`] | the CPU ray caster: camera view (8-bit luma), depth map, surface ids, noise/exposure/motion blur |
+//! | [`texture`] | the world-anchored procedural texture with its mip pyramid |
+//! | [`camera`] | camera pose from robot pose + mount, optical ↔ world transforms, [`RenderedCamera`] (`hal::Camera`) |
+//! | [`truth`] | ground truth: TPO class by DESIGN.md geometry ([`truth::tpo`] thresholds), nearest obstacle, exact motion field |
+//! | [`scene`] | canonical scenes built in code (wall, corner, door, corridor, empty) for labelled benchmarks |
+
+pub mod camera;
+pub mod render;
+pub mod scene;
+pub mod texture;
+pub mod truth;
+pub mod world;
+
+pub use camera::{CameraPose, Pacing, RenderedCamera};
+pub use render::{DepthMap, Effects, Renderer};
+pub use truth::{FrameTruth, GroundTruth, MotionField, TpoClass};
+pub use world::{Pose, World, WorldError};

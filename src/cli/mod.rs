@@ -8,6 +8,7 @@ use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
 pub mod flow;
+pub mod render;
 
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
@@ -54,12 +55,15 @@ impl Common {
 pub enum Command {
     /// Block optical flow between two images (DESIGN.md output contract with --json).
     Flow(flow::Args),
+    /// Render views of a simulated world: one PNG for a pose, or a labelled frame folder for a trajectory.
+    Render(render::Args),
 }
 
 /// Runs one parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Flow(args) => flow::run(args, &cli.common),
+        Command::Render(args) => render::run(args, &cli.common),
     }
 }
 

@@ -1,0 +1,187 @@
+//! World-anchored procedural texture: one tileable multi-octave value-noise image with a
+//! box-filtered mip pyramid, sampled trilinearly in surface coordinates (metres).
+//!
+//! Why this shape: block matching (32×32 blocks, paper §5) needs texture at every scale a block
+//! can see, from 5 mm at 0.5 m to decimetres at 10 m, and the texture must stick to the surface
+//! (world-anchored) so the image motion is exactly the geometric motion field. Every surface
+//! samples the same tile at its own offset, so neighbouring surfaces differ and their edges show.
+//! The mip pyramid removes aliasing where a pixel covers many texels (far floor, grazing walls).
+
+use std::sync::OnceLock;
+
+/// Side of the finest level, texels (a power of two).
+const SIZE: usize = 2048;
+/// Size of one finest texel on the surface, m (the tile repeats every `SIZE * TEXEL_M` = 8.19 m).
+pub const TEXEL_M: f32 = 0.004;
+
+/// The shared texture (built once per process, ~0.2 s in release).
+pub fn shared() -> &'static Texture {
+    static TEX: OnceLock<Texture> = OnceLock::new();
+    TEX.get_or_init(|| Texture::generate(0x0FF1_5EED))
+}
+
+/// A tileable grey texture and its mip pyramid, values 0..=255.
+pub struct Texture {
+    /// `levels[l]` is `(SIZE >> l)²` texels, row-major.
+    levels: Vec<Vec<u8>>,
+}
+
+impl Texture {
+    /// Sums value-noise octaves of wavelength 2…512 texels (8 mm … 2 m) with equal amplitude,
+    /// then stretches the sum to mean 128 and standard deviation 48.
+    pub fn generate(seed: u64) -> Self {
+        let mut acc = vec![0f32; SIZE * SIZE];
+        let mut wavelength = 2usize;
+        let mut octave = 0u64;
+        while wavelength <= 512 {
+            let cells = SIZE / wavelength;
+            let lattice: Vec<f32> = (0..cells * cells)
+                .map(|i| {
+                    let h = crate::world::mix64(seed ^ (octave << 40) ^ i as u64);
+                    (h >> 40) as f32 / (1u64 << 24) as f32
+                })
+                .collect();
+            let inv = 1.0 / wavelength as f32;
+            for y in 0..SIZE {
+                let fy = (y as f32 + 0.5) * inv - 0.5;
+                let y0 = fy.floor();
+                let ty = smooth(fy - y0);
+                let iy0 = (y0 as isize).rem_euclid(cells as isize) as usize;
+                let iy1 = (iy0 + 1) % cells;
+                for x in 0..SIZE {
+                    let fx = (x as f32 + 0.5) * inv - 0.5;
+                    let x0 = fx.floor();
+                    let tx = smooth(fx - x0);
+                    let ix0 = (x0 as isize).rem_euclid(cells as isize) as usize;
+                    let ix1 = (ix0 + 1) % cells;
+                    let a = lattice[iy0 * cells + ix0] + (lattice[iy0 * cells + ix1] - lattice[iy0 * cells + ix0]) * tx;
+                    let b = lattice[iy1 * cells + ix0] + (lattice[iy1 * cells + ix1] - lattice[iy1 * cells + ix0]) * tx;
+                    acc[y * SIZE + x] += a + (b - a) * ty;
+                }
+            }
+            wavelength *= 2;
+            octave += 1;
+        }
+        let n = acc.len() as f64;
+        let mean = acc.iter().map(|&v| v as f64).sum::<f64>() / n;
+        let sd = (acc.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n).sqrt().max(1e-9);
+        let base: Vec<u8> =
+            acc.iter().map(|&v| (128.0 + 48.0 * (v as f64 - mean) / sd).round().clamp(0.0, 255.0) as u8).collect();
+        let mut levels = vec![base];
+        let mut size = SIZE;
+        while size > 1 {
+            let prev = levels.last().expect("at least the base level");
+            let half = size / 2;
+            let mut next = vec![0u8; half * half];
+            for y in 0..half {
+                for x in 0..half {
+                    let s = prev[2 * y * size + 2 * x] as u32
+                        + prev[2 * y * size + 2 * x + 1] as u32
+                        + prev[(2 * y + 1) * size + 2 * x] as u32
+                        + prev[(2 * y + 1) * size + 2 * x + 1] as u32;
+                    next[y * half + x] = ((s + 2) / 4) as u8;
+                }
+            }
+            levels.push(next);
+            size = half;
+        }
+        Self { levels }
+    }
+
+    /// The texture at surface point (u, v) in metres, for a pixel footprint of `footprint_m`
+    /// metres on the surface: trilinear between the two mip levels around the footprint.
+    /// Returns 0..=1 (mean 0.5).
+    #[inline]
+    pub fn sample(&self, u: f32, v: f32, footprint_m: f32) -> f32 {
+        let lod = fast_log2(footprint_m / TEXEL_M).max(0.0);
+        let max = (self.levels.len() - 1) as f32;
+        if lod >= max {
+            return self.levels[self.levels.len() - 1][0] as f32 / 255.0;
+        }
+        let l0 = lod as usize;
+        let f = lod - l0 as f32;
+        let a = self.bilinear(l0, u, v);
+        if f < 0.01 {
+            return a / 255.0;
+        }
+        let b = self.bilinear(l0 + 1, u, v);
+        (a + (b - a) * f) / 255.0
+    }
+
+    #[inline]
+    fn bilinear(&self, level: usize, u: f32, v: f32) -> f32 {
+        let size = SIZE >> level;
+        let mask = size as i32 - 1;
+        let scale = 1.0 / (TEXEL_M * (1 << level) as f32);
+        let x = u * scale - 0.5;
+        let y = v * scale - 0.5;
+        let (ix, fx) = floor_frac(x);
+        let (iy, fy) = floor_frac(y);
+        let tex = &self.levels[level];
+        let x0 = (ix & mask) as usize;
+        let x1 = ((ix + 1) & mask) as usize;
+        let y0 = (iy & mask) as usize * size;
+        let y1 = ((iy + 1) & mask) as usize * size;
+        let a = tex[y0 + x0] as f32;
+        let b = tex[y0 + x1] as f32;
+        let c = tex[y1 + x0] as f32;
+        let d = tex[y1 + x1] as f32;
+        let top = a + (b - a) * fx;
+        let bot = c + (d - c) * fx;
+        top + (bot - top) * fy
+    }
+}
+
+fn smooth(t: f32) -> f32 {
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// Floor as an integer and the fractional part, without a libm call. Coordinates beyond ±2³¹
+/// texels (8.6 Mm) do not occur.
+#[inline]
+fn floor_frac(x: f32) -> (i32, f32) {
+    let i = x as i32;
+    let i = if (i as f32) > x { i - 1 } else { i };
+    (i, x - i as f32)
+}
+
+/// log2 to about 0.09 accuracy (exponent plus linear mantissa), enough to pick mip levels.
+#[inline]
+fn fast_log2(x: f32) -> f32 {
+    if x <= 0.0 || !x.is_finite() {
+        return if x.is_finite() { -126.0 } else { 126.0 };
+    }
+    let bits = x.to_bits();
+    let exp = ((bits >> 23) & 0xff) as f32 - 127.0;
+    let mant = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
+    exp + (mant - 1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn texture_has_contrast_and_mips_average() {
+        let t = shared();
+        let base = &t.levels[0];
+        let mean = base.iter().map(|&v| v as f64).sum::<f64>() / base.len() as f64;
+        assert!((mean - 128.0).abs() < 2.0, "{mean}");
+        // Fine detail: neighbouring texels differ.
+        let diff: f64 = base[..SIZE].windows(2).map(|w| (w[0] as f64 - w[1] as f64).abs()).sum::<f64>() / SIZE as f64;
+        assert!(diff > 3.0, "{diff}");
+        // Far away (huge footprint) the texture fades to its mean: no aliasing.
+        assert!((t.sample(1.234, 5.678, 100.0) - 0.5).abs() < 0.02);
+        // The tile repeats every SIZE texels.
+        let p = SIZE as f32 * TEXEL_M;
+        assert!((t.sample(0.3, 0.7, 0.001) - t.sample(0.3 + p, 0.7 - p, 0.001)).abs() < 1e-3);
+    }
+
+    #[test]
+    fn fast_log2_is_close() {
+        for x in [0.3f32, 1.0, 1.5, 7.0, 1000.0] {
+            assert!((fast_log2(x) - x.log2()).abs() < 0.1, "{x}");
+        }
+        assert_eq!(floor_frac(-1.25), (-2, 0.75));
+    }
+}
