@@ -16,6 +16,7 @@ pub mod base;
 pub mod calib;
 pub mod camera;
 pub mod error;
+pub mod fnp;
 pub mod image;
 pub mod motion;
 
