@@ -406,12 +406,7 @@ mod tests {
     pub(crate) fn vectors() -> Vec<(u8, Packet, Direction, Vec<u8>)> {
         use Direction::*;
         vec![
-            (
-                7,
-                Packet::Setpoint { v_mm_s: 300, omega_mrad_s: -150 },
-                HostToBase,
-                hex("09 01 07 2c 01 6a ff 39 99 00"),
-            ),
+            (7, Packet::Setpoint { v_mm_s: 300, omega_mrad_s: -150 }, HostToBase, hex("09 01 07 2c 01 6a ff 39 99 00")),
             (0, Packet::Setpoint { v_mm_s: 0, omega_mrad_s: 0 }, HostToBase, hex("02 01 01 01 01 01 03 b0 4b 00")),
             (8, Packet::Stop, HostToBase, hex("05 02 08 65 fa 00")),
             (1, Packet::Hello { watchdog_ms: 250 }, HostToBase, hex("04 03 01 fa 03 26 d4 00")),
