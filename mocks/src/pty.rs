@@ -85,20 +85,13 @@ impl AsyncRead for Pty {
 impl AsyncWrite for Pty {
     /// Like a UART transmitter, never waits for the other side: when the slave's buffer is full
     /// (no driver reading), the bytes are dropped and counted.
-    fn poll_write(self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
-        loop {
-            let mut guard = ready!(self.master.poll_write_ready(cx))?;
-            match guard.try_io(|f| f.get_ref().write(buf)) {
-                Ok(Err(e)) if e.kind() == io::ErrorKind::WouldBlock => {
-                    self.unread_dropped.fetch_add(buf.len() as u64, Ordering::Relaxed);
-                    return Poll::Ready(Ok(buf.len()));
-                }
-                Ok(r) => return Poll::Ready(r),
-                Err(_would_block) => {
-                    self.unread_dropped.fetch_add(buf.len() as u64, Ordering::Relaxed);
-                    return Poll::Ready(Ok(buf.len()));
-                }
+    fn poll_write(self: Pin<&mut Self>, _cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
+        match self.master.get_ref().write(buf) {
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                self.unread_dropped.fetch_add(buf.len() as u64, Ordering::Relaxed);
+                Poll::Ready(Ok(buf.len()))
             }
+            r => Poll::Ready(r),
         }
     }
 
