@@ -13,6 +13,7 @@
 //! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`], [`LinkStats`] |
 //! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
 //! | [`fnp_driver`] | the FNP/1 host driver over tokio-serial, reconnect/back-off, device-clock mapping |
+//! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
 
 pub mod base;
 pub mod calib;
@@ -21,6 +22,7 @@ pub mod error;
 pub mod fnp;
 pub mod fnp_driver;
 pub mod image;
+pub mod kobuki;
 pub mod motion;
 
 pub use base::{BaseEvent, BaseStatus, LinkStats, MotorBase};

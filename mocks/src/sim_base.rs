@@ -22,7 +22,7 @@ use crate::kinematics::{CollisionFn, DiffDrive, DiffDriveParams, Pose};
 use crate::pty::Pty;
 use hal::BodyVelocity;
 use hal::fnp::{self, DecodeStats, Decoder, Direction, Packet};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -324,7 +324,7 @@ pub struct LinkFaultStats {
 pub struct SimServer<D: SimDevice> {
     device: Arc<Mutex<D>>,
     ctl: mpsc::UnboundedSender<Control>,
-    path: watch::Receiver<PathBuf>,
+    path: watch::Receiver<(u64, PathBuf)>,
     link: Option<PathBuf>,
     manual: bool,
     stats: Arc<Mutex<LinkFaultStats>>,
@@ -340,7 +340,7 @@ impl<D: SimDevice> SimServer<D> {
         }
         let device = Arc::new(Mutex::new(device));
         let (ctl, ctl_rx) = mpsc::unbounded_channel();
-        let (path_tx, path) = watch::channel(pty.path().to_path_buf());
+        let (path_tx, path) = watch::channel((0, pty.path().to_path_buf()));
         let stats = Arc::new(Mutex::new(LinkFaultStats::default()));
         let manual = opts.clock == SimClock::Manual;
         let link = opts.link.clone();
@@ -348,9 +348,14 @@ impl<D: SimDevice> SimServer<D> {
         Ok(Self { device, ctl, path, link, manual, stats, task: Some(task) })
     }
 
-    /// The current pty slave path (`/dev/pts/N`; changes after a disconnect).
+    /// The current pty slave path (`/dev/pts/N`; may change after a disconnect).
     pub fn pty_path(&self) -> PathBuf {
-        self.path.borrow().clone()
+        self.path.borrow().1.clone()
+    }
+
+    /// How many times the pty was reopened after a disconnect.
+    pub fn pty_generation(&self) -> u64 {
+        self.path.borrow().0
     }
 
     /// What a driver should open: the stable link if there is one, else the pty path.
@@ -358,9 +363,9 @@ impl<D: SimDevice> SimServer<D> {
         self.link.clone().unwrap_or_else(|| self.pty_path())
     }
 
-    /// Waits until the pty path differs from `old` (after a disconnect).
-    pub async fn wait_new_path(&mut self, old: &Path) -> PathBuf {
-        let _ = self.path.wait_for(|p| p != old).await;
+    /// Waits until the pty has been reopened more than `generation` times; returns its path.
+    pub async fn wait_reopened(&mut self, generation: u64) -> PathBuf {
+        let _ = self.path.wait_for(|(g, _)| *g > generation).await;
         self.pty_path()
     }
 
@@ -434,7 +439,7 @@ async fn serve<D: SimDevice>(
     device: Arc<Mutex<D>>,
     opts: ServeOptions,
     mut ctl: mpsc::UnboundedReceiver<Control>,
-    path_tx: watch::Sender<PathBuf>,
+    path_tx: watch::Sender<(u64, PathBuf)>,
     stats: Arc<Mutex<LinkFaultStats>>,
 ) {
     let mut tx_faults = FaultInjector::new(opts.faults.clone());
@@ -501,7 +506,10 @@ async fn serve<D: SimDevice>(
             {
                 tracing::warn!("cannot update the link {}: {e}", link.display());
             }
-            let _ = path_tx.send(pty.path().to_path_buf());
+            path_tx.send_modify(|(g, p)| {
+                *g += 1;
+                *p = pty.path().to_path_buf();
+            });
             last = tokio::time::Instant::now();
         }
         let mut s = lock(&stats);
