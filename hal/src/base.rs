@@ -1,7 +1,14 @@
 //! The motor-base trait: body-velocity set-points in, odometry and status out.
+//!
+//! Drivers: [`crate::fnp_driver::FnpBase`] (FNP/1, `PROTOCOL.md`) and
+//! [`crate::kobuki::KobukiBase`] (TurtleBot 2). Both run a background tokio task that owns the
+//! port, re-sends the latest command at a fixed rate, reconnects with back-off, and stops the base
+//! when the driver is dropped; the trait methods only exchange data with that task.
 
 use crate::error::Error;
 use crate::motion::{BodyVelocity, Odometry};
+use std::future::Future;
+use std::time::Duration;
 
 /// Health flags a base reports (FNP/1 STATUS, Kobuki sensor data).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -24,18 +31,59 @@ pub enum BaseEvent {
     Status(BaseStatus),
 }
 
-/// A differential-drive base.
+/// Link health counters a driver keeps (all cumulative since construction).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LinkStats {
+    /// Whether the link is up now (handshake done, bytes arriving).
+    pub connected: bool,
+    /// Valid frames received / sent.
+    pub frames_rx: u64,
+    pub frames_tx: u64,
+    /// Received frames dropped as malformed (bad framing, checksum, type or length).
+    pub dropped_rx: u64,
+    /// Frames the base sent that never arrived (sequence gaps), where the protocol can tell.
+    pub lost_rx: u64,
+    /// Times the link was declared down, and times it came back.
+    pub disconnects: u64,
+    pub reconnects: u64,
+    /// Times the driver's own command watchdog zeroed a stale non-zero command.
+    pub command_timeouts: u64,
+    /// Events discarded because nobody read them (the event queue was full).
+    pub events_dropped: u64,
+}
+
+/// A differential-drive base, used from async code (a tokio runtime must be running).
 ///
-/// `set_velocity` records the latest command: the driver itself repeats it to the hardware at
-/// its fixed rate (≥ 20 Hz), so the caller only calls it when the command changes. `stop`
-/// commands zero velocity at once. Dropping a driver stops the base.
+/// `set_velocity` and `stop` never block: they hand the command to the driver's background task,
+/// which sends it at once and repeats it at its fixed rate (≥ 20 Hz). Callers refresh the
+/// command at their control rate: a driver zeroes a non-zero command that was not refreshed
+/// within its command timeout (a host-side watchdog; Kobuki firmware has none). While the link is
+/// down, `set_velocity` fails with [`crate::ErrorKind::Disconnected`] and the driver reconnects on
+/// its own; after a reconnect the base stays stopped until the next `set_velocity`.
+/// Dropping a driver stops the base.
 pub trait MotorBase: Send {
     type Error: Error;
 
+    /// Drive at this body velocity (REP-103; clamped to what the protocol can carry).
     fn set_velocity(&mut self, cmd: BodyVelocity) -> Result<(), Self::Error>;
 
+    /// Stop now.
     fn stop(&mut self) -> Result<(), Self::Error>;
 
-    /// The next event, waiting at most `timeout`; `Ok(None)` when none arrived in time.
-    fn next_event(&mut self, timeout: std::time::Duration) -> Result<Option<BaseEvent>, Self::Error>;
+    /// The next event, waiting at most `timeout`; `Ok(None)` when none arrived in time. An error
+    /// of kind `Disconnected` is returned once each time the link goes down.
+    fn next_event(&mut self, timeout: Duration) -> impl Future<Output = Result<Option<BaseEvent>, Self::Error>> + Send;
+
+    /// Link counters, for logs and tests.
+    fn link_stats(&self) -> LinkStats {
+        LinkStats::default()
+    }
+}
+
+/// Now on the host's monotonic clock (`CLOCK_MONOTONIC`, the clock V4L2 stamps frames with), ns.
+pub fn host_now_ns() -> u64 {
+    match nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC) {
+        Ok(ts) => ts.tv_sec() as u64 * 1_000_000_000 + ts.tv_nsec() as u64,
+        Err(_) => 0,
+    }
 }

@@ -10,16 +10,22 @@
 //! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103) and [`Odometry`] |
 //! | [`error`] | [`ErrorKind`]: what the runtime does about a hardware error (reconnect, stop, skip, report) |
 //! | [`camera`] | the [`Camera`] trait |
-//! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`] |
+//! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`], [`LinkStats`] |
+//! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
+//! | [`fnp_driver`] | the FNP/1 host driver over tokio-serial, reconnect/back-off, device-clock mapping |
+//! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
 
 pub mod base;
 pub mod calib;
 pub mod camera;
 pub mod error;
+pub mod fnp;
+pub mod fnp_driver;
 pub mod image;
+pub mod kobuki;
 pub mod motion;
 
-pub use base::{BaseEvent, BaseStatus, MotorBase};
+pub use base::{BaseEvent, BaseStatus, LinkStats, MotorBase};
 pub use calib::{CalibError, Calibration};
 pub use camera::Camera;
 pub use error::{Error, ErrorKind};

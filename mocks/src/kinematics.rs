@@ -1,0 +1,314 @@
+//! Differential-drive kinematics for the simulated bases: velocity and acceleration limits,
+//! exact unicycle integration, wheel encoders with seeded noise, and a collision hook.
+//!
+//! The commanded body velocity is clamped to the limits, the actual velocity ramps towards it at
+//! the acceleration limits, and the pose then moves along the exact arc for that (constant)
+//! velocity over the step. Encoders count true wheel travel times `ticks_per_m`, each step's
+//! increment scaled by `1 + σ·N(0,1)`, so odometry drifts from the true pose as on a real base.
+//! Within a step the pose moves at the mean of the old and new velocity, which is exact for a
+//! constant-acceleration straight ramp and for any constant velocity.
+//!
+//! When the caller's collision test says the next pose is in collision, the base does not move,
+//! its velocity drops to zero, its bumper is pressed and a new contact is counted. The bumper
+//! stays pressed until the base has backed off [`BUMPER_TRAVEL_M`] from the obstacle.
+
+use crate::faults::SimRng;
+use hal::BodyVelocity;
+use std::sync::Arc;
+
+/// How far the base must move away from an obstacle before its bumper releases.
+pub const BUMPER_TRAVEL_M: f64 = 0.01;
+
+/// A planar pose in the world frame: metres, radians (counter-clockwise from +x).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Pose {
+    pub x: f64,
+    pub y: f64,
+    pub theta: f64,
+}
+
+impl Pose {
+    pub fn new(x: f64, y: f64, theta: f64) -> Self {
+        Self { x, y, theta }
+    }
+}
+
+/// "Is the robot in collision at this pose?", supplied by whoever knows the world's geometry.
+pub type CollisionFn = Arc<dyn Fn(&Pose) -> bool + Send + Sync>;
+
+/// Velocity and acceleration limits of the base.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DriveLimits {
+    pub max_v: f64,
+    pub max_omega: f64,
+    pub max_accel: f64,
+    pub max_alpha: f64,
+}
+
+impl Default for DriveLimits {
+    fn default() -> Self {
+        Self { max_v: 0.7, max_omega: 2.5, max_accel: 1.0, max_alpha: 4.0 }
+    }
+}
+
+/// Geometry, limits and encoder noise of a simulated differential-drive base.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DiffDriveParams {
+    pub wheel_base_m: f64,
+    pub ticks_per_m: f64,
+    pub limits: DriveLimits,
+    /// Relative standard deviation of each step's encoder increment.
+    pub encoder_noise: f64,
+    pub seed: u64,
+}
+
+impl Default for DiffDriveParams {
+    fn default() -> Self {
+        Self { wheel_base_m: 0.33, ticks_per_m: 10_000.0, limits: DriveLimits::default(), encoder_noise: 0.01, seed: 1 }
+    }
+}
+
+/// Moves `pose` for `dt` seconds at constant body velocity (`v`, `omega`) along the exact arc.
+pub fn integrate(pose: &Pose, v: f64, omega: f64, dt: f64) -> Pose {
+    let th = pose.theta;
+    let dth = omega * dt;
+    let (dx, dy) = if dth.abs() < 1e-9 {
+        // Second-order term keeps this consistent with the arc as omega -> 0.
+        let c = v * dt;
+        (c * (th + 0.5 * dth).cos(), c * (th + 0.5 * dth).sin())
+    } else {
+        let r = v / omega;
+        (r * ((th + dth).sin() - th.sin()), -r * ((th + dth).cos() - th.cos()))
+    };
+    Pose { x: pose.x + dx, y: pose.y + dy, theta: wrap_angle(th + dth) }
+}
+
+/// Wraps an angle into (-π, π].
+pub fn wrap_angle(a: f64) -> f64 {
+    let w = a.rem_euclid(std::f64::consts::TAU);
+    if w > std::f64::consts::PI { w - std::f64::consts::TAU } else { w }
+}
+
+/// The simulated drive train.
+pub struct DiffDrive {
+    params: DiffDriveParams,
+    pose: Pose,
+    velocity: BodyVelocity,
+    left_ticks: f64,
+    right_ticks: f64,
+    rng: SimRng,
+    collision: Option<CollisionFn>,
+    bumper: bool,
+    /// +1 when the contact is ahead, -1 behind.
+    contact_dir: f64,
+    collisions: u64,
+}
+
+impl std::fmt::Debug for DiffDrive {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DiffDrive")
+            .field("pose", &self.pose)
+            .field("velocity", &self.velocity)
+            .field("bumper", &self.bumper)
+            .field("collisions", &self.collisions)
+            .finish_non_exhaustive()
+    }
+}
+
+impl DiffDrive {
+    pub fn new(params: DiffDriveParams) -> Self {
+        Self {
+            params,
+            pose: Pose::default(),
+            velocity: BodyVelocity::ZERO,
+            left_ticks: 0.0,
+            right_ticks: 0.0,
+            rng: SimRng::new(params.seed),
+            collision: None,
+            bumper: false,
+            contact_dir: 1.0,
+            collisions: 0,
+        }
+    }
+
+    pub fn params(&self) -> &DiffDriveParams {
+        &self.params
+    }
+
+    /// The true pose (ground truth, for the renderer and for scoring).
+    pub fn pose(&self) -> Pose {
+        self.pose
+    }
+
+    pub fn set_pose(&mut self, pose: Pose) {
+        self.pose = pose;
+    }
+
+    /// The actual (not commanded) body velocity.
+    pub fn velocity(&self) -> BodyVelocity {
+        self.velocity
+    }
+
+    /// Cumulative encoder counts (left, right).
+    pub fn ticks(&self) -> (i64, i64) {
+        (self.left_ticks.floor() as i64, self.right_ticks.floor() as i64)
+    }
+
+    pub fn bumper(&self) -> bool {
+        self.bumper
+    }
+
+    /// Contacts so far (each run of blocked steps counts once).
+    pub fn collisions(&self) -> u64 {
+        self.collisions
+    }
+
+    pub fn set_collision(&mut self, collision: Option<CollisionFn>) {
+        self.collision = collision;
+    }
+
+    /// Advances `dt` seconds towards the commanded velocity.
+    pub fn step(&mut self, cmd: BodyVelocity, dt: f64) {
+        if dt <= 0.0 || !dt.is_finite() {
+            return;
+        }
+        let lim = self.params.limits;
+        let finite = |x: f64| if x.is_finite() { x } else { 0.0 };
+        let v_cmd = finite(cmd.v).clamp(-lim.max_v, lim.max_v);
+        let w_cmd = finite(cmd.omega).clamp(-lim.max_omega, lim.max_omega);
+        let ramp = |cur: f64, target: f64, rate: f64| cur + (target - cur).clamp(-rate * dt, rate * dt);
+        let v = ramp(self.velocity.v, v_cmd, lim.max_accel);
+        let omega = ramp(self.velocity.omega, w_cmd, lim.max_alpha);
+        let (v_mean, w_mean) = (0.5 * (self.velocity.v + v), 0.5 * (self.velocity.omega + omega));
+        let next = integrate(&self.pose, v_mean, w_mean, dt);
+        if self.collision.as_ref().is_some_and(|hit| hit(&next)) {
+            if !self.bumper {
+                self.collisions += 1;
+            }
+            self.bumper = true;
+            self.contact_dir = if v_mean < 0.0 { -1.0 } else { 1.0 };
+            self.velocity = BodyVelocity::ZERO;
+            return;
+        }
+        self.velocity = BodyVelocity::new(v, omega);
+        self.pose = next;
+        if self.bumper {
+            let probe = integrate(&self.pose, self.contact_dir * BUMPER_TRAVEL_M, 0.0, 1.0);
+            self.bumper = self.collision.as_ref().is_some_and(|hit| hit(&probe));
+        }
+        let half = 0.5 * self.params.wheel_base_m * w_mean;
+        let (dl, dr) = ((v_mean - half) * dt, (v_mean + half) * dt);
+        let sigma = self.params.encoder_noise;
+        self.left_ticks += dl * self.params.ticks_per_m * (1.0 + sigma * self.rng.normal());
+        self.right_ticks += dr * self.params.ticks_per_m * (1.0 + sigma * self.rng.normal());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f64::consts::PI;
+
+    fn quiet() -> DiffDriveParams {
+        DiffDriveParams {
+            encoder_noise: 0.0,
+            limits: DriveLimits { max_accel: 1e9, max_alpha: 1e9, ..Default::default() },
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn exact_arc_closes_a_circle() {
+        // v = 0.5 m/s, omega = 0.5 rad/s: radius 1 m, a full circle in 4π s, any step size.
+        let mut p = Pose::default();
+        let steps = 1000;
+        let dt = 4.0 * PI / steps as f64;
+        for i in 0..steps {
+            p = integrate(&p, 0.5, 0.5, dt);
+            if i == steps / 4 - 1 {
+                assert!((p.x - 1.0).abs() < 1e-9 && (p.y - 1.0).abs() < 1e-9, "{p:?}");
+            }
+        }
+        assert!(p.x.abs() < 1e-9 && p.y.abs() < 1e-9 && p.theta.abs() < 1e-9, "{p:?}");
+        // One big step equals many small ones.
+        let one = integrate(&Pose::default(), 0.5, 0.5, 2.0 * PI);
+        assert!((one.x - 0.0).abs() < 1e-12 && (one.y - 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn straight_line_and_encoders() {
+        let mut d = DiffDrive::new(quiet());
+        for _ in 0..100 {
+            d.step(BodyVelocity::new(0.3, 0.0), 0.01);
+        }
+        // The first step ramps from rest: it covers half a step's distance.
+        assert!((d.pose().x - 0.2985).abs() < 1e-12 && d.pose().y.abs() < 1e-12, "{:?}", d.pose());
+        let (l, r) = d.ticks();
+        assert!((l - 2985).abs() <= 1 && (r - 2985).abs() <= 1, "{l} {r}");
+    }
+
+    #[test]
+    fn turning_in_place_moves_the_wheels_opposite() {
+        let mut d = DiffDrive::new(quiet());
+        for _ in 0..100 {
+            d.step(BodyVelocity::new(0.0, 1.0), 0.01);
+        }
+        assert!((d.pose().theta - 0.995).abs() < 1e-12);
+        let (l, r) = d.ticks();
+        // Each wheel travels theta * b/2 = 0.164175 m.
+        assert!((l + 1642).abs() <= 1 && (r - 1641).abs() <= 1, "{l} {r}");
+    }
+
+    #[test]
+    fn limits_clamp_and_ramp() {
+        let mut d = DiffDrive::new(DiffDriveParams { encoder_noise: 0.0, ..Default::default() });
+        d.step(BodyVelocity::new(5.0, -10.0), 0.1);
+        assert!((d.velocity().v - 0.1).abs() < 1e-12 && (d.velocity().omega + 0.4).abs() < 1e-12);
+        for _ in 0..100 {
+            d.step(BodyVelocity::new(5.0, -10.0), 0.1);
+        }
+        assert_eq!(d.velocity(), BodyVelocity::new(0.7, -2.5));
+        d.step(BodyVelocity::new(f64::NAN, f64::INFINITY), 0.1);
+        assert!(d.velocity().v.is_finite() && d.velocity().omega.is_finite());
+    }
+
+    #[test]
+    fn encoder_noise_is_seeded_and_unbiased() {
+        let run = |seed| {
+            let mut d = DiffDrive::new(DiffDriveParams { seed, encoder_noise: 0.05, ..quiet() });
+            for _ in 0..1000 {
+                d.step(BodyVelocity::new(0.5, 0.0), 0.01);
+            }
+            d.ticks()
+        };
+        assert_eq!(run(7), run(7));
+        assert_ne!(run(7), run(8));
+        let (l, _) = run(7);
+        // 5 m = 50000 ticks; 1000 increments of 5% noise: std ≈ 0.05·50/√1000·1000 ≈ 79 ticks.
+        assert!((l - 50_000).abs() < 400, "{l}");
+    }
+
+    #[test]
+    fn collision_stops_presses_bumper_and_counts_once() {
+        let mut d = DiffDrive::new(quiet());
+        d.set_collision(Some(Arc::new(|p: &Pose| p.x > 1.0)));
+        for _ in 0..500 {
+            d.step(BodyVelocity::new(0.5, 0.0), 0.01);
+        }
+        assert!(d.pose().x <= 1.0 && d.pose().x > 0.99);
+        assert!(d.bumper());
+        assert_eq!(d.velocity(), BodyVelocity::ZERO);
+        assert_eq!(d.collisions(), 1);
+        // Backing off more than the bumper travel releases it; driving in again is a second contact.
+        d.step(BodyVelocity::new(-0.5, 0.0), 0.01);
+        assert!(d.bumper());
+        for _ in 0..10 {
+            d.step(BodyVelocity::new(-0.5, 0.0), 0.01);
+        }
+        assert!(!d.bumper());
+        for _ in 0..20 {
+            d.step(BodyVelocity::new(0.5, 0.0), 0.01);
+        }
+        assert_eq!(d.collisions(), 2);
+    }
+}

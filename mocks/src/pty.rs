@@ -1,0 +1,127 @@
+//! Pseudo-terminals for the simulated bases: a raw-mode pty whose slave path (`/dev/pts/N`) a
+//! driver opens like a serial port, while the simulator reads and writes the master.
+//!
+//! The simulator keeps a slave descriptor open for the pty's whole life, so the master never
+//! sees a hang-up when the driver closes and reopens the port. Closing a [`Pty`] (dropping it)
+//! hangs up the slave side: that is how a disconnect is simulated. An optional stable symlink
+//! ([`Pty::link_at`]) lets a driver reopen "the same port" after the simulator made a new pty,
+//! like a udev symlink for a USB adapter that was unplugged and plugged back in.
+
+use nix::fcntl::{FcntlArg, OFlag, fcntl};
+use nix::sys::termios::{SetArg, cfmakeraw, tcgetattr, tcsetattr};
+use std::fs::File;
+use std::io::{self, Read, Write};
+use std::os::fd::OwnedFd;
+use std::path::{Path, PathBuf};
+use std::pin::Pin;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::task::{Context, Poll, ready};
+use tokio::io::unix::AsyncFd;
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+
+/// A pty opened in raw mode: the master as an async byte stream, the slave's path for drivers.
+pub struct Pty {
+    master: AsyncFd<File>,
+    _slave: OwnedFd,
+    path: PathBuf,
+    /// Bytes written to the master that the kernel refused because nobody is reading the slave.
+    unread_dropped: Arc<AtomicU64>,
+}
+
+impl Pty {
+    /// Opens a new pty (inside a tokio runtime). The slave is raw 8-bit: no echo, no line editing.
+    pub fn open() -> io::Result<Self> {
+        let pair = nix::pty::openpty(None, None).map_err(io::Error::from)?;
+        let mut t = tcgetattr(&pair.slave).map_err(io::Error::from)?;
+        cfmakeraw(&mut t);
+        tcsetattr(&pair.slave, SetArg::TCSANOW, &t).map_err(io::Error::from)?;
+        let path = nix::unistd::ttyname(&pair.slave).map_err(io::Error::from)?;
+        let flags = OFlag::from_bits_truncate(fcntl(&pair.master, FcntlArg::F_GETFL).map_err(io::Error::from)?);
+        fcntl(&pair.master, FcntlArg::F_SETFL(flags | OFlag::O_NONBLOCK)).map_err(io::Error::from)?;
+        let master = File::from(pair.master);
+        // SAFETY: the AsyncFd owns the file, so the descriptor stays open (and is not reused)
+        // until the AsyncFd is dropped, which deregisters it first.
+        let master = unsafe { AsyncFd::register(master) }.map_err(|e| e.into_parts().1)?;
+        Ok(Self { master, _slave: pair.slave, path, unread_dropped: Arc::new(AtomicU64::new(0)) })
+    }
+
+    /// The slave's path (`/dev/pts/N`), to be opened by a driver.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Points the symlink `link` at this pty's slave (replacing it atomically).
+    pub fn link_at(&self, link: &Path) -> io::Result<()> {
+        let tmp = link.with_extension("flownav-tmp");
+        let _ = std::fs::remove_file(&tmp);
+        std::os::unix::fs::symlink(&self.path, &tmp)?;
+        std::fs::rename(&tmp, link)
+    }
+
+    /// Bytes dropped because the slave's input buffer was full (nobody reading the port).
+    pub fn unread_dropped(&self) -> u64 {
+        self.unread_dropped.load(Ordering::Relaxed)
+    }
+}
+
+impl AsyncRead for Pty {
+    fn poll_read(self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
+        loop {
+            let mut guard = ready!(self.master.poll_read_ready(cx))?;
+            let unfilled = buf.initialize_unfilled();
+            match guard.try_io(|f| f.get_ref().read(unfilled)) {
+                Ok(Ok(n)) => {
+                    buf.advance(n);
+                    return Poll::Ready(Ok(()));
+                }
+                Ok(Err(e)) => return Poll::Ready(Err(e)),
+                Err(_would_block) => continue,
+            }
+        }
+    }
+}
+
+impl AsyncWrite for Pty {
+    /// Like a UART transmitter, never waits for the other side: when the slave's buffer is full
+    /// (no driver reading), the bytes are dropped and counted.
+    fn poll_write(self: Pin<&mut Self>, _cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
+        match self.master.get_ref().write(buf) {
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                self.unread_dropped.fetch_add(buf.len() as u64, Ordering::Relaxed);
+                Poll::Ready(Ok(buf.len()))
+            }
+            r => Poll::Ready(r),
+        }
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Poll::Ready(Ok(()))
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Poll::Ready(Ok(()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    #[tokio::test]
+    async fn bytes_cross_both_ways_binary_safe() {
+        let mut pty = Pty::open().unwrap();
+        assert!(pty.path().starts_with("/dev/pts"), "{:?}", pty.path());
+        let mut port = std::fs::OpenOptions::new().read(true).write(true).open(pty.path()).unwrap();
+        let all: Vec<u8> = (0..=255u8).collect();
+        pty.write_all(&all).await.unwrap();
+        let mut got = vec![0u8; 256];
+        port.read_exact(&mut got).unwrap();
+        assert_eq!(got, all);
+        port.write_all(&all).unwrap();
+        let mut got = vec![0u8; 256];
+        pty.read_exact(&mut got).await.unwrap();
+        assert_eq!(got, all);
+    }
+}
