@@ -9,7 +9,10 @@
 //! | [`calib`] | [`Calibration`]: pinhole intrinsics, distortion, and where the camera sits on the robot (`calib/*.toml`) |
 //! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103) and [`Odometry`] |
 //! | [`error`] | [`ErrorKind`]: what the runtime does about a hardware error (reconnect, stop, skip, report) |
-//! | [`camera`] | the [`Camera`] trait |
+//! | [`camera`] | the [`Camera`] trait and the monotonic clock frames are stamped with |
+//! | [`v4l2`] | the V4L2 camera (`/dev/videoN`), device listing, the `[camera]` config table |
+//! | [`mjpeg`] | MJPEG → luma (zune-jpeg), inserting the standard Huffman tables UVC frames omit |
+//! | [`yuyv`] | YUYV 4:2:2 → luma |
 //! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`] |
 
 pub mod base;
@@ -17,7 +20,10 @@ pub mod calib;
 pub mod camera;
 pub mod error;
 pub mod image;
+pub mod mjpeg;
 pub mod motion;
+pub mod v4l2;
+pub mod yuyv;
 
 pub use base::{BaseEvent, BaseStatus, MotorBase};
 pub use calib::{CalibError, Calibration};
