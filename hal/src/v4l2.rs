@@ -116,7 +116,7 @@ impl CameraConfig {
                 return bad(field, format!("is {v}; must be in 16..=8192 pixels"));
             }
         }
-        if self.format == PixelFormat::Yuyv && self.width % 2 != 0 {
+        if self.format == PixelFormat::Yuyv && !self.width.is_multiple_of(2) {
             return bad("width", format!("is {}; YUYV packs pixel pairs, so it must be even", self.width));
         }
         if !(self.fps.is_finite() && self.fps > 0.0 && self.fps <= 240.0) {
@@ -423,7 +423,7 @@ pub fn check_supported(formats: &[FormatInfo], cfg: &CameraConfig) -> Result<(),
             }
         }
         Sizes::Stepwise { min, max, step } => {
-            let fits = |v: u32, lo: u32, hi: u32, st: u32| (lo..=hi).contains(&v) && (v - lo) % st == 0;
+            let fits = |v: u32, lo: u32, hi: u32, st: u32| (lo..=hi).contains(&v) && (v - lo).is_multiple_of(st);
             if !fits(cfg.width, min.0, max.0, step.0) || !fits(cfg.height, min.1, max.1, step.1) {
                 return missing(format!("{want} has no {}x{} frame size", cfg.width, cfg.height));
             }
