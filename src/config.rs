@@ -2,6 +2,7 @@
 //! with a documented default, unknown fields rejected. Command-line flags override it.
 
 use crate::flow::FlowParams;
+use hal::v4l2::CameraConfig;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -20,6 +21,8 @@ pub enum ConfigError {
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     pub flow: FlowParams,
+    /// `[camera]`: the V4L2 device and the mode to negotiate (see docs/camera.md).
+    pub camera: CameraConfig,
 }
 
 impl Config {
@@ -35,7 +38,10 @@ impl Config {
 
     /// Checks ranges that serde cannot.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.flow.validate()
+        self.flow.validate()?;
+        self.camera
+            .validate()
+            .map_err(|e| ConfigError::Invalid { field: format!("camera.{}", e.field), problem: e.problem })
     }
 }
 
@@ -79,5 +85,17 @@ mod tests {
         std::fs::write(&p, "[flow]\nbogus = 1\n").unwrap();
         let e = Config::load(&p).unwrap_err().to_string();
         assert!(e.contains("bogus") && e.contains("c.toml"), "{e}");
+    }
+
+    #[test]
+    fn camera_table() {
+        let cfg: Config = toml::from_str("[camera]\ndevice = \"/dev/video2\"\nformat = \"yuyv\"\nfps = 7.5\n").unwrap();
+        assert_eq!(cfg.camera.device, std::path::PathBuf::from("/dev/video2"));
+        assert_eq!(cfg.camera.format, hal::v4l2::PixelFormat::Yuyv);
+        assert_eq!((cfg.camera.width, cfg.camera.height), (1280, 720));
+        cfg.validate().unwrap();
+        let bad: Config = toml::from_str("[camera]\nstall_timeout_ms = 10\n").unwrap();
+        assert!(bad.validate().unwrap_err().to_string().contains("camera.stall_timeout_ms"));
+        assert!(toml::from_str::<Config>("[camera]\nformat = \"h264\"\n").is_err());
     }
 }
