@@ -27,7 +27,7 @@ use v4l::frameinterval::FrameIntervalEnum;
 use v4l::framesize::FrameSizeEnum;
 use v4l::v4l_sys;
 use v4l::video::Capture;
-use v4l::{Device, Format, FourCC, Fraction};
+use v4l::{Device, FourCC, Fraction};
 
 /// Number of mmap buffers requested from the driver: enough to absorb a slow frame without the
 /// driver dropping one, few enough that a dequeued frame is at most ~3 frame periods old.
@@ -314,7 +314,7 @@ fn query_caps(dev: &Device) -> io::Result<(String, String, String, u32)> {
     unsafe {
         v4l::v4l2::ioctl(dev.handle().fd(), v4l::v4l2::vidioc::VIDIOC_QUERYCAP, &mut caps as *mut _ as *mut c_void)?;
     }
-    let text = |b: &[u8]| String::from_utf8_lossy(b.split(|&c| c == 0).next().unwrap_or(&[])).into_owned();
+    let text = c_text;
     let flags =
         if caps.capabilities & v4l_sys::V4L2_CAP_DEVICE_CAPS != 0 { caps.device_caps } else { caps.capabilities };
     Ok((text(&caps.driver), text(&caps.card), text(&caps.bus_info), flags))
@@ -324,17 +324,62 @@ fn is_capture(flags: u32) -> bool {
     flags & v4l_sys::V4L2_CAP_VIDEO_CAPTURE != 0 && flags & v4l_sys::V4L2_CAP_STREAMING != 0
 }
 
+/// Whether an enumeration ioctl failing at index 0 just means "nothing listed" (the driver does
+/// not enumerate this), rather than a real error.
+fn nothing_listed(e: &io::Error) -> bool {
+    matches!(e.raw_os_error(), Some(libc::EINVAL | libc::ENOTTY))
+}
+
+/// Pixel formats of a capture device, with our own `VIDIOC_ENUM_FMT` loop (the v4l crate's
+/// conversion panics on descriptions that are not UTF-8).
+fn enum_formats(dev: &Device) -> io::Result<Vec<(FourCC, String)>> {
+    let mut out = Vec::new();
+    for index in 0.. {
+        // SAFETY: v4l2_fmtdesc is plain old data; zero is a valid bit pattern.
+        let mut desc: v4l_sys::v4l2_fmtdesc = unsafe { std::mem::zeroed() };
+        desc.index = index;
+        desc.type_ = v4l_sys::v4l2_buf_type_V4L2_BUF_TYPE_VIDEO_CAPTURE;
+        // SAFETY: VIDIOC_ENUM_FMT reads the index/type and fills one v4l2_fmtdesc.
+        let r = unsafe {
+            v4l::v4l2::ioctl(dev.handle().fd(), v4l::v4l2::vidioc::VIDIOC_ENUM_FMT, &mut desc as *mut _ as *mut c_void)
+        };
+        match r {
+            Ok(()) => out.push((FourCC::from(desc.pixelformat), c_text(&desc.description))),
+            Err(e) if index > 0 || nothing_listed(&e) => break,
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(out)
+}
+
+/// A NUL-terminated byte array from the kernel as text, lossily.
+fn c_text(b: &[u8]) -> String {
+    String::from_utf8_lossy(b.split(|&c| c == 0).next().unwrap_or(&[])).into_owned()
+}
+
+/// A fourcc as text (`MJPG`), or its hex value when it is not printable.
+fn fourcc_text(fourcc: FourCC) -> String {
+    match fourcc.str() {
+        Ok(s) if s.chars().all(|c| c.is_ascii_graphic() || c == ' ') => s.trim_end().to_string(),
+        _ => format!("0x{:08x}", u32::from_le_bytes(fourcc.repr)),
+    }
+}
+
 /// Formats, sizes and rates a capture device offers.
 fn probe_formats(dev: &Device) -> io::Result<Vec<FormatInfo>> {
     let mut out = Vec::new();
-    for desc in dev.enum_formats()? {
-        let fourcc = desc.fourcc.str().map(str::to_string).unwrap_or_else(|_| format!("{:?}", desc.fourcc.repr));
+    for (fourcc, description) in enum_formats(dev)? {
         let mut discrete = Vec::new();
         let mut stepwise = None;
-        for size in dev.enum_framesizes(desc.fourcc)? {
+        let sizes = match dev.enum_framesizes(fourcc) {
+            Ok(sizes) => sizes,
+            Err(e) if nothing_listed(&e) => vec![],
+            Err(e) => return Err(e),
+        };
+        for size in sizes {
             match size.size {
                 FrameSizeEnum::Discrete(d) => {
-                    let rates = probe_rates(dev, desc.fourcc, d.width, d.height)?;
+                    let rates = probe_rates(dev, fourcc, d.width, d.height)?;
                     discrete.push((d.width, d.height, rates));
                 }
                 FrameSizeEnum::Stepwise(s) => {
@@ -347,14 +392,19 @@ fn probe_formats(dev: &Device) -> io::Result<Vec<FormatInfo>> {
             }
         }
         let sizes = stepwise.unwrap_or(Sizes::Discrete(discrete));
-        out.push(FormatInfo { fourcc, description: desc.description, sizes });
+        out.push(FormatInfo { fourcc: fourcc_text(fourcc), description, sizes });
     }
     Ok(out)
 }
 
 fn probe_rates(dev: &Device, fourcc: FourCC, width: u32, height: u32) -> io::Result<Rates> {
+    let intervals = match dev.enum_frameintervals(fourcc, width, height) {
+        Ok(v) => v,
+        Err(e) if nothing_listed(&e) => vec![],
+        Err(e) => return Err(e),
+    };
     let mut rates = Vec::new();
-    for ival in dev.enum_frameintervals(fourcc, width, height)? {
+    for ival in intervals {
         match ival.interval {
             FrameIntervalEnum::Discrete(f) => rates.push(fps_of(f)),
             // The slowest rate is the longest interval.
@@ -404,11 +454,15 @@ pub fn check_supported(formats: &[FormatInfo], cfg: &CameraConfig) -> Result<(),
     let Some(format) = formats.iter().find(|f| f.fourcc == want) else {
         return missing(format!("it has no {want} format (config `camera.format = \"{}\"`)", cfg.format.name()));
     };
+    // A driver that lists no rates is checked by reading back what VIDIOC_S_PARM set.
     let rate_ok = |r: &Rates| match r {
+        Rates::Discrete(v) if v.is_empty() => true,
         Rates::Discrete(v) => v.iter().any(|&x| (x - cfg.fps).abs() <= 0.01 * cfg.fps),
         Rates::Range { min_fps, max_fps } => (min_fps * 0.99..=max_fps * 1.01).contains(&cfg.fps),
     };
     match &format.sizes {
+        // A driver that lists no sizes is checked by reading back what VIDIOC_S_FMT set.
+        Sizes::Discrete(sizes) if sizes.is_empty() => {}
         Sizes::Discrete(sizes) => {
             let Some((_, _, rates)) = sizes.iter().find(|(w, h, _)| (*w, *h) == (cfg.width, cfg.height)) else {
                 return missing(format!("{want} has no {}x{} frame size", cfg.width, cfg.height));
@@ -499,25 +553,26 @@ impl V4l2Camera {
         );
 
         let device = Device::with_path(path).map_err(|e| io_error(path, "open", e))?;
-        let fourcc = FourCC::new(&cfg.format.fourcc());
-        let got: Format = device
-            .set_format(&Format::new(cfg.width, cfg.height, fourcc))
-            .map_err(|e| io_error(path, "VIDIOC_S_FMT", e))?;
-        if got.fourcc != fourcc || got.width != cfg.width || got.height != cfg.height {
+        let (got_fourcc, got_w, got_h, bytesperline) =
+            set_format(&device, cfg).map_err(|e| io_error(path, "VIDIOC_S_FMT", e))?;
+        if got_fourcc != cfg.format.fourcc() || (got_w, got_h) != (cfg.width, cfg.height) {
             return Err(unsupported(
                 wanted,
-                format!("the driver answered with {} {}x{} instead", got.fourcc, got.width, got.height),
+                format!(
+                    "the driver answered with {} {}x{} instead",
+                    fourcc_text(FourCC::new(&got_fourcc)),
+                    got_w,
+                    got_h
+                ),
             ));
         }
         let interval = fps_fraction(cfg.fps);
-        let params = device
-            .set_params(&v4l::video::capture::Parameters::new(interval))
-            .map_err(|e| io_error(path, "VIDIOC_S_PARM", e))?;
-        let got_fps = fps_of(params.interval);
+        let got_interval = set_interval(&device, interval).map_err(|e| io_error(path, "VIDIOC_S_PARM", e))?;
+        let got_fps = fps_of(got_interval);
         if (got_fps - cfg.fps).abs() > 0.01 * cfg.fps {
             return Err(unsupported(wanted, format!("the driver set {} fps instead", fmt_fps(got_fps))));
         }
-        let stride = if got.stride == 0 { 2 * cfg.width as usize } else { got.stride as usize };
+        let stride = if bytesperline == 0 { 2 * cfg.width as usize } else { bytesperline as usize };
 
         let mut cam = Self {
             device,
@@ -710,6 +765,39 @@ impl V4l2Camera {
                 .map_err(|source| V4l2Error::Yuyv { path: self.cfg.device.clone(), source })?,
         }
         Ok(img)
+    }
+}
+
+/// `VIDIOC_S_FMT` for `cfg`'s format and size; returns what the driver set: fourcc, width,
+/// height, bytes per line.
+fn set_format(dev: &Device, cfg: &CameraConfig) -> io::Result<([u8; 4], u32, u32, u32)> {
+    // SAFETY: v4l2_format is plain old data; zero is a valid bit pattern.
+    let mut fmt: v4l_sys::v4l2_format = unsafe { std::mem::zeroed() };
+    fmt.type_ = v4l_sys::v4l2_buf_type_V4L2_BUF_TYPE_VIDEO_CAPTURE;
+    // SAFETY: `pix` is the union member for VIDEO_CAPTURE formats.
+    unsafe {
+        fmt.fmt.pix.width = cfg.width;
+        fmt.fmt.pix.height = cfg.height;
+        fmt.fmt.pix.pixelformat = u32::from_le_bytes(cfg.format.fourcc());
+        fmt.fmt.pix.field = v4l_sys::v4l2_field_V4L2_FIELD_NONE;
+        v4l::v4l2::ioctl(dev.handle().fd(), v4l::v4l2::vidioc::VIDIOC_S_FMT, &mut fmt as *mut _ as *mut c_void)?;
+        let pix = fmt.fmt.pix;
+        Ok((pix.pixelformat.to_le_bytes(), pix.width, pix.height, pix.bytesperline))
+    }
+}
+
+/// `VIDIOC_S_PARM` with the frame interval; returns the interval the driver set.
+fn set_interval(dev: &Device, interval: Fraction) -> io::Result<Fraction> {
+    // SAFETY: v4l2_streamparm is plain old data; zero is a valid bit pattern.
+    let mut parm: v4l_sys::v4l2_streamparm = unsafe { std::mem::zeroed() };
+    parm.type_ = v4l_sys::v4l2_buf_type_V4L2_BUF_TYPE_VIDEO_CAPTURE;
+    // SAFETY: `capture` is the union member for VIDEO_CAPTURE streams.
+    unsafe {
+        parm.parm.capture.timeperframe.numerator = interval.numerator;
+        parm.parm.capture.timeperframe.denominator = interval.denominator;
+        v4l::v4l2::ioctl(dev.handle().fd(), v4l::v4l2::vidioc::VIDIOC_S_PARM, &mut parm as *mut _ as *mut c_void)?;
+        let t = parm.parm.capture.timeperframe;
+        Ok(Fraction::new(t.numerator, t.denominator))
     }
 }
 
