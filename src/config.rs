@@ -54,7 +54,7 @@ impl FlowParams {
         if self.rows == 0 || self.cols == 0 {
             return bad("rows/cols", "must be at least 1");
         }
-        if !(4..=256).contains(&self.block) || self.block % 2 != 0 {
+        if !(4..=256).contains(&self.block) || !self.block.is_multiple_of(2) {
             return bad("block", "must be an even number of pixels in 4..=256");
         }
         if !(1..=64).contains(&self.radius) {
