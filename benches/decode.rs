@@ -37,11 +37,12 @@ fn scene() -> Vec<u8> {
     rgb
 }
 
-/// The JPEG as a UVC camera sends it: every DHT segment removed.
-fn uvc_mjpeg(rgb: &[u8]) -> Vec<u8> {
+/// The JPEG as a UVC camera sends it: every DHT segment removed. `pixels` is RGB (3 components,
+/// 4:4:4) or luma (1 component).
+fn uvc_mjpeg(pixels: &[u8], colour: image::ExtendedColorType) -> Vec<u8> {
     let mut jpeg = Vec::new();
     image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 85)
-        .encode(rgb, W, H, image::ExtendedColorType::Rgb8)
+        .encode(pixels, W, H, colour)
         .expect("encode test frame");
     let mut out = jpeg[..2].to_vec();
     let mut i = 2;
@@ -106,8 +107,14 @@ fn bench_cpu(c: &mut Criterion<ThreadCpu>) {
 
 fn bench<M: Measurement>(c: &mut Criterion<M>, name: &str) {
     let rgb = scene();
-    let mjpeg = uvc_mjpeg(&rgb);
-    eprintln!("MJPEG test frame: {W}x{H}, 4:4:4, quality 85, {} bytes without DHT", mjpeg.len());
+    let mjpeg = uvc_mjpeg(&rgb, image::ExtendedColorType::Rgb8);
+    let grey: Vec<u8> = rgb.chunks_exact(3).map(|p| p[1]).collect();
+    let mjpeg_grey = uvc_mjpeg(&grey, image::ExtendedColorType::L8);
+    eprintln!(
+        "MJPEG test frames: {W}x{H}, quality 85, without DHT: YCbCr 4:4:4 {} bytes, greyscale {} bytes",
+        mjpeg.len(),
+        mjpeg_grey.len()
+    );
     let mut group = c.benchmark_group(name);
     group.throughput(Throughput::Elements(1));
 
@@ -115,6 +122,11 @@ fn bench<M: Measurement>(c: &mut Criterion<M>, name: &str) {
     let mut out = LumaImage::default();
     group.bench_function("mjpeg_to_luma", |b| {
         b.iter(|| decoder.decode_into(black_box(&mjpeg), &mut out).expect("decodes"))
+    });
+    // A one-component frame: the entropy decoding of chroma is gone, so this bounds the cost of a
+    // UVC 4:2:2 frame from below, as the 4:4:4 frame bounds it from above.
+    group.bench_function("mjpeg_grey_to_luma", |b| {
+        b.iter(|| decoder.decode_into(black_box(&mjpeg_grey), &mut out).expect("decodes"))
     });
 
     let yuyv: Vec<u8> = rgb.chunks_exact(3).flat_map(|p| [p[1], 128]).collect();
