@@ -5,6 +5,7 @@ use crate::control::ControlLimits;
 use crate::flow::FlowParams;
 use crate::mofis::MofisParams;
 use crate::pafsis::PafsisParams;
+use hal::v4l2::CameraConfig;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -26,6 +27,8 @@ pub struct Config {
     pub pafsis: PafsisParams,
     pub mofis: MofisParams,
     pub control: ControlLimits,
+    /// `[camera]`: the V4L2 device and the mode to negotiate (see docs/camera.md).
+    pub camera: CameraConfig,
 }
 
 impl Config {
@@ -45,6 +48,9 @@ impl Config {
         self.pafsis.validate()?;
         self.mofis.validate()?;
         self.control.validate()
+        self.camera
+            .validate()
+            .map_err(|e| ConfigError::Invalid { field: format!("camera.{}", e.field), problem: e.problem })
     }
 }
 
@@ -103,5 +109,17 @@ mod tests {
         std::fs::write(&p, "[flow]\nbogus = 1\n").unwrap();
         let e = Config::load(&p).unwrap_err().to_string();
         assert!(e.contains("bogus") && e.contains("c.toml"), "{e}");
+    }
+
+    #[test]
+    fn camera_table() {
+        let cfg: Config = toml::from_str("[camera]\ndevice = \"/dev/video2\"\nformat = \"yuyv\"\nfps = 7.5\n").unwrap();
+        assert_eq!(cfg.camera.device, std::path::PathBuf::from("/dev/video2"));
+        assert_eq!(cfg.camera.format, hal::v4l2::PixelFormat::Yuyv);
+        assert_eq!((cfg.camera.width, cfg.camera.height), (1280, 720));
+        cfg.validate().unwrap();
+        let bad: Config = toml::from_str("[camera]\nstall_timeout_ms = 10\n").unwrap();
+        assert!(bad.validate().unwrap_err().to_string().contains("camera.stall_timeout_ms"));
+        assert!(toml::from_str::<Config>("[camera]\nformat = \"h264\"\n").is_err());
     }
 }

@@ -12,6 +12,7 @@
 //! | [`pafsis`] | topological map, global plan (mission → waypoints), local plan (landmarks + odometry → goal velocity/angle) | §2.2 |
 //! | [`mofis`] | fuzzy collision avoidance and its fusion with the goal → set-point | §2.2 |
 //! | [`control`] | set-point safety limiter: speed, turn rate, acceleration | |
+//! | [`sources`] | where `run` gets frames: `--camera /dev/videoN` (V4L2) or `frames:DIR` played as a camera | |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
@@ -26,3 +27,4 @@ pub mod fuzzy;
 pub mod mofis;
 pub mod pafsis;
 pub mod perception;
+pub mod sources;

@@ -14,6 +14,9 @@ pub enum ErrorKind {
     Unsupported,
     /// Anything else (I/O errors, permissions): report it to a human.
     Other,
+    /// A finite source (a frame folder played as a camera) has delivered its last frame: stop
+    /// the robot and end the run normally. Live devices never report it.
+    EndOfStream,
 }
 
 /// Implemented by every driver's error type.

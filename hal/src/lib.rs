@@ -14,6 +14,11 @@
 //! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
 //! | [`fnp_driver`] | the FNP/1 host driver over tokio-serial, reconnect/back-off, device-clock mapping |
 //! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
+//! | [`camera`] | the [`Camera`] trait and the monotonic clock frames are stamped with |
+//! | [`v4l2`] | the V4L2 camera (`/dev/videoN`), device listing, the `[camera]` config table |
+//! | [`mjpeg`] | MJPEG → luma (zune-jpeg), inserting the standard Huffman tables UVC frames omit |
+//! | [`yuyv`] | YUYV 4:2:2 → luma |
+//! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`] |
 
 pub mod base;
 pub mod calib;
@@ -23,7 +28,10 @@ pub mod fnp;
 pub mod fnp_driver;
 pub mod image;
 pub mod kobuki;
+pub mod mjpeg;
 pub mod motion;
+pub mod v4l2;
+pub mod yuyv;
 
 pub use base::{BaseEvent, BaseStatus, LinkStats, MotorBase};
 pub use calib::{CalibError, Calibration};

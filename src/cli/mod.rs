@@ -9,6 +9,7 @@ use std::path::PathBuf;
 
 pub mod flow;
 pub mod render;
+pub mod devices;
 
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
@@ -57,6 +58,8 @@ pub enum Command {
     Flow(flow::Args),
     /// Render views of a simulated world: one PNG for a pose, or a labelled frame folder for a trajectory.
     Render(render::Args),
+    /// List V4L2 cameras with their formats, sizes and frame rates.
+    Devices(devices::Args),
 }
 
 /// Runs one parsed command line.
@@ -64,6 +67,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Flow(args) => flow::run(args, &cli.common),
         Command::Render(args) => render::run(args, &cli.common),
+        Command::Devices(args) => devices::run(args, &cli.common),
     }
 }
 
