@@ -8,6 +8,7 @@
 //! | [`frames`] | reading images and frame folders (PNG/JPEG → 8-bit luma, `odometry.csv`) | |
 //! | [`flow`] | block-matching optical flow: parameters, the flow field, CPU and GPU engines | §2.2, §5 |
 //! | [`perception`] | the OFFIS output: TPO shape/distance, nearest obstacle, structure masks | §2.2 |
+//! | [`logging`] | MCAP run logs for Foxglove: the non-blocking writer, the replay reader, `log info` | |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
@@ -17,4 +18,5 @@ pub mod cli;
 pub mod config;
 pub mod flow;
 pub mod frames;
+pub mod logging;
 pub mod perception;
