@@ -21,6 +21,7 @@ pub mod foxglove;
 mod info;
 pub mod payload;
 mod reader;
+pub mod sample;
 mod writer;
 
 use std::collections::BTreeMap;

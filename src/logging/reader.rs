@@ -57,8 +57,9 @@ impl Scan {
         let file = File::open(path).map_err(|source| LogError::Read { path: path.to_path_buf(), source })?;
         let len = file.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
         // A chunk cut off by a crash still has its placeholder length (2^64 - 1): the limit turns
-        // that into an error instead of an attempt to buffer it.
-        let limit = usize::try_from(len).unwrap_or(usize::MAX).max(1024);
+        // that into an error instead of an attempt to buffer it. Records inside chunks may be
+        // larger than the (compressed) file, hence the 1 GiB floor.
+        let limit = usize::try_from(len).unwrap_or(usize::MAX).max(1 << 30);
         let options = LinearReaderOptions::default().with_record_length_limit(limit);
         Ok(Self {
             path: path.to_path_buf(),

@@ -461,8 +461,10 @@ impl Part {
             .write_metadata(&mcap::records::Metadata { name: "flownav.stats".into(), metadata: m })
             .map_err(|e| self.err(e))?;
         self.mcap.finish().map_err(|e| self.err(e))?;
-        self.mcap.flush().ok();
-        Ok(self.path)
+        let path = self.path;
+        // `finish` wrote the summary and footer; push them out of the buffer to the file.
+        self.mcap.into_inner().flush().map_err(|e| LogError::Write { path: path.clone(), message: e.to_string() })?;
+        Ok(path)
     }
 }
 
@@ -724,3 +726,50 @@ impl Worker {
 
 /// Upper bound the writer waits before pushing a partial chunk to disk, exposed for docs/tests.
 pub const DEFAULT_FLUSH_INTERVAL: Duration = Duration::from_secs(1);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A handle whose queue nobody drains: the writer "has fallen behind" for good.
+    fn stalled(caps: [usize; 3]) -> (LogHandle, Receiver<Item>) {
+        let (tx, rx) = crossbeam_channel::unbounded();
+        let shared = Arc::new(Shared {
+            caps,
+            pending: Default::default(),
+            dropped: Default::default(),
+            lost: AtomicU64::new(0),
+            closed: AtomicBool::new(false),
+        });
+        (LogHandle { tx, shared }, rx)
+    }
+
+    #[test]
+    fn a_stalled_writer_drops_images_first_and_never_blocks_setpoints() {
+        let (log, rx) = stalled([2, 3, 100]);
+        let img = LumaImage::new(4, 4);
+        let accepted_images = (0..10).filter(|&i| log.image_mono8(i, &img)).count();
+        let accepted_data = (0..10).filter(|&i| log.pose(i, &Pose2D::default())).count();
+        let accepted_setpoints = (0..50).filter(|&i| log.setpoint(i, &SetpointLog::default())).count();
+        let accepted_odometry = (0..50).filter(|&i| log.odometry(&Odometry { t_ns: i, ..Default::default() })).count();
+        assert_eq!((accepted_images, accepted_data, accepted_setpoints, accepted_odometry), (2, 3, 50, 50));
+        let d = log.drops();
+        assert_eq!((d.dropped_images, d.dropped_data, d.dropped_critical, d.lost), (8, 7, 0, 0));
+        // The critical cap is a cap too: past it, set-points are refused and counted, not queued.
+        assert!(!log.setpoint(0, &SetpointLog::default()));
+        assert_eq!(log.drops().dropped_critical, 1);
+        assert_eq!(rx.len(), 2 + 3 + 100);
+    }
+
+    #[test]
+    fn draining_the_queue_makes_room_again() {
+        let (log, rx) = stalled([1, 1, 1]);
+        let img = LumaImage::new(2, 2);
+        assert!(log.image_mono8(0, &img));
+        assert!(!log.image_mono8(1, &img));
+        let item = rx.try_recv().unwrap();
+        log.shared.pending[item.class()].fetch_sub(1, Ordering::AcqRel);
+        assert!(log.image_mono8(2, &img));
+        assert_eq!(log.drops().dropped_images, 1);
+    }
+}
