@@ -7,6 +7,8 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
+pub mod log;
+
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
 pub struct Cli {
@@ -49,11 +51,16 @@ impl Common {
 }
 
 #[derive(Debug, Subcommand)]
-pub enum Command {}
+pub enum Command {
+    /// Inspect MCAP run logs (`log info LOG`).
+    Log(log::Args),
+}
 
 /// Runs one parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
-    match cli.command {}
+    match cli.command {
+        Command::Log(args) => log::run(args, &cli.common),
+    }
 }
 
 /// Log to stderr; `RUST_LOG` wins over `-v`.
