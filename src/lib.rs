@@ -13,6 +13,7 @@
 //! | [`mofis`] | fuzzy collision avoidance and its fusion with the goal → set-point | §2.2 |
 //! | [`control`] | set-point safety limiter: speed, turn rate, acceleration | |
 //! | [`sources`] | where `run` gets frames: `--camera /dev/videoN` (V4L2) or `frames:DIR` played as a camera | |
+//! | [`logging`] | MCAP run logs for Foxglove: the non-blocking writer, the replay reader, `log info` | |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
@@ -26,5 +27,6 @@ pub mod frames;
 pub mod fuzzy;
 pub mod mofis;
 pub mod pafsis;
+pub mod logging;
 pub mod perception;
 pub mod sources;

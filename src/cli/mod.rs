@@ -10,6 +10,7 @@ use std::path::PathBuf;
 pub mod flow;
 pub mod render;
 pub mod devices;
+pub mod log;
 
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
@@ -60,6 +61,8 @@ pub enum Command {
     Render(render::Args),
     /// List V4L2 cameras with their formats, sizes and frame rates.
     Devices(devices::Args),
+    /// Inspect MCAP run logs (`log info LOG`).
+    Log(log::Args),
 }
 
 /// Runs one parsed command line.
@@ -68,6 +71,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Flow(args) => flow::run(args, &cli.common),
         Command::Render(args) => render::run(args, &cli.common),
         Command::Devices(args) => devices::run(args, &cli.common),
+        Command::Log(args) => log::run(args, &cli.common),
     }
 }
 
