@@ -2,6 +2,7 @@
 //! with a documented default, unknown fields rejected. Command-line flags override it.
 
 use crate::flow::FlowParams;
+use crate::offis::OffisParams;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -20,6 +21,7 @@ pub enum ConfigError {
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     pub flow: FlowParams,
+    pub offis: OffisParams,
 }
 
 impl Config {
@@ -35,7 +37,8 @@ impl Config {
 
     /// Checks ranges that serde cannot.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        self.flow.validate()
+        self.flow.validate()?;
+        self.offis.check().map_err(|(field, problem)| ConfigError::Invalid { field, problem })
     }
 }
 
@@ -79,5 +82,9 @@ mod tests {
         std::fs::write(&p, "[flow]\nbogus = 1\n").unwrap();
         let e = Config::load(&p).unwrap_err().to_string();
         assert!(e.contains("bogus") && e.contains("c.toml"), "{e}");
+        std::fs::write(&p, "[offis.plane]\nrel = 1.5\n").unwrap();
+        assert!(Config::load(&p).unwrap_err().to_string().contains("offis.plane.rel"));
+        std::fs::write(&p, "[offis.tilt]\nk_tilt = 0.5\n").unwrap();
+        assert_eq!(Config::load(&p).unwrap().offis.tilt.k_tilt, 0.5);
     }
 }

@@ -7,6 +7,7 @@
 //! |---|---|---|
 //! | [`frames`] | reading images and frame folders (PNG/JPEG → 8-bit luma, `odometry.csv`) | |
 //! | [`flow`] | block-matching optical flow: parameters, the flow field, CPU and GPU engines | §2.2, §5 |
+//! | [`offis`] | OFFIS: quadrant attributes, structure masks, obstacle zoom-in, distances from flow | §2.3–§5 |
 //! | [`perception`] | the OFFIS output: TPO shape/distance, nearest obstacle, structure masks | §2.2 |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
@@ -17,4 +18,5 @@ pub mod cli;
 pub mod config;
 pub mod flow;
 pub mod frames;
+pub mod offis;
 pub mod perception;
