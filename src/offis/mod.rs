@@ -14,9 +14,11 @@
 //! | rough and fine structure masks | §4.1–4.2, eq. 11–12 | [`structure`] |
 //! | obstacle zoom-in, layer 1 → 3 | §3.1, Fig. 6 | [`quadrants::zoom_in`] |
 //! | distance from flow and velocity (τ = r/ṙ, Z = t_z·τ) | §2.2 | [`geometry::locate`] |
+//! | classifier features (horizon profile, fits) | §5 | [`features`] |
 //!
 //! The step is pure and deterministic: no clock, no I/O; its buffers are reused between frames.
 
+pub mod features;
 pub mod geometry;
 pub mod planes;
 pub mod quadrants;
@@ -25,6 +27,7 @@ pub mod synth;
 
 use crate::flow::FlowField;
 use crate::perception::{Obstacle, Perception, Tpo};
+use features::{Features, ProfilePoint};
 use geometry::{DepthParams, FrameMotion, Located, PinholeCamera};
 use hal::{BodyVelocity, Calibration};
 use planes::{PlaneTolerance, TiltParams};
@@ -116,6 +119,10 @@ pub struct Attributes {
     /// blocks, m (`None`: not translating, or no block measurable).
     pub forward_l3: [[Option<f64>; 8]; 8],
     pub range_l3: [[Option<f64>; 8]; 8],
+    /// Per layer-3 column, the median located point (forward, left) near the horizon ([`features`]).
+    pub profile: [ProfilePoint; 8],
+    /// The classifier inputs.
+    pub features: Features,
 }
 
 /// The OFFIS stage: its parameters and the buffers it reuses from frame to frame.
@@ -128,6 +135,7 @@ pub struct Offis {
     inlier: Vec<bool>,
     located: Vec<Option<Located>>,
     scratch: Vec<f64>,
+    scratch2: Vec<f64>,
     attributes: Attributes,
 }
 
@@ -227,6 +235,17 @@ impl Offis {
             }
         }
 
+        let mut profile = [None; 8];
+        if foe.is_some() {
+            // the band of rows around the horizon, where the TPO definitions probe the planes
+            let horizon = cam.cy - cam.fy * cam.pitch_rad.tan();
+            let band = (horizon - 0.2 * cam.fy)..=(horizon + 0.05 * cam.fy);
+            for (c, point) in profile.iter_mut().enumerate() {
+                *point = self.column_point(flow, grid, c, &band);
+            }
+        }
+        let features = Features::from_profile(&profile);
+
         let obstacle = match zoom {
             Some(z) => {
                 let [r, c] = z.l3;
@@ -262,6 +281,8 @@ impl Offis {
             foe,
             forward_l3,
             range_l3,
+            profile,
+            features,
         };
         Ok(Perception { tpo: Tpo { distance_m: tpo_distance, ..Tpo::default() }, obstacle, rough, fine })
     }
@@ -278,6 +299,32 @@ impl Offis {
             }
         }
         quadrants::median(&mut self.scratch)
+    }
+}
+
+impl Offis {
+    /// The median (forward, left) of the located blocks of layer-3 column `c` whose centre row
+    /// lies in `band` (pixels).
+    fn column_point(
+        &mut self,
+        flow: &FlowField,
+        grid: Grid,
+        c: usize,
+        band: &std::ops::RangeInclusive<f64>,
+    ) -> ProfilePoint {
+        let w = grid.cols / 8;
+        self.scratch.clear();
+        self.scratch2.clear();
+        for br in 0..grid.rows {
+            for bc in c * w..(c + 1) * w {
+                let i = br * grid.cols + bc;
+                if let Some(l) = self.located[i].filter(|_| band.contains(&(flow.vectors[i].y as f64))) {
+                    self.scratch.push(l.forward);
+                    self.scratch2.push(l.left);
+                }
+            }
+        }
+        Some([quadrants::median(&mut self.scratch)?, quadrants::median(&mut self.scratch2)?])
     }
 }
 

@@ -261,3 +261,40 @@ fn the_step_is_deterministic_and_reuses_its_buffers() {
     offis.step(&b.field, vel, DT, &c).unwrap();
     assert_eq!(offis.step(&a.field, vel, DT, &c).unwrap(), first);
 }
+
+fn features(scene: &Scene) -> features::Features {
+    let c = Calibration::nominal_c310();
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let pair = scene.flow(&c, 16, 16, vel, DT);
+    let mut offis = Offis::new(OffisParams::default());
+    offis.step(&pair.field, vel, DT, &c).unwrap();
+    offis.attributes().features
+}
+
+#[test]
+fn features_separate_the_four_shapes() {
+    let floor = Rect::floor();
+    let wall = features(&Scene { rects: vec![Rect::frontal(2.6, [-10.0, 10.0], Z), floor] });
+    assert!(wall.line_resid < 0.01 && wall.corner_angle_deg < 5.0, "{wall:?}");
+    assert!((wall.open_ahead_m - 2.45).abs() < 0.01 && wall.near_frac == 1.0, "{wall:?}");
+    // a concave corner: two walls at ±45° meeting 3 m ahead
+    let corner = features(&Scene {
+        rects: vec![
+            Rect::vertical(3.1, 0.0, std::f64::consts::FRAC_PI_4, [-10.0, 0.0, -10.0], [10.0, 10.0, 10.0]),
+            Rect::vertical(3.1, 0.0, -std::f64::consts::FRAC_PI_4, [-10.0, -10.0, -10.0], [10.0, 0.0, 10.0]),
+            floor,
+        ],
+    });
+    assert!(corner.corner_angle_deg > 70.0 && corner.line_resid > 0.05, "{corner:?}");
+    let corridor =
+        features(&Scene { rects: vec![Rect::side(1.0, [0.0, 60.0], Z), Rect::side(-1.0, [0.0, 60.0], Z), floor] });
+    assert!(corridor.side_angle_deg < 5.0 && corridor.open_ahead_m >= 7.9, "{corridor:?}");
+    let door = features(&Scene {
+        rects: vec![Rect::frontal(2.6, [0.5, 10.0], Z), Rect::frontal(2.6, [-10.0, -0.5], Z), floor],
+    });
+    assert!(door.gap_frac > 0.25 && door.open_ahead_m >= 7.9 && door.side_angle_deg > 80.0, "{door:?}");
+    // the opening alone does not make a door (a corridor or a concave corner is open behind the
+    // chord too): its flanks are one plane, which neither a corner nor a corridor has
+    assert!(door.corner_angle_deg < 5.0 && door.line_resid < 0.01, "{door:?}");
+    assert!(wall.gap_frac == 0.0, "{wall:?}");
+}
