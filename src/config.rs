@@ -1,8 +1,11 @@
 //! The TOML configuration file (`--config FILE`): one table per stage, every field optional
 //! with a documented default, unknown fields rejected. Command-line flags override it.
 
+use crate::control::ControlLimits;
 use crate::flow::FlowParams;
+use crate::mofis::MofisParams;
 use crate::offis::OffisParams;
+use crate::pafsis::PafsisParams;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -22,6 +25,9 @@ pub enum ConfigError {
 pub struct Config {
     pub flow: FlowParams,
     pub offis: OffisParams,
+    pub pafsis: PafsisParams,
+    pub mofis: MofisParams,
+    pub control: ControlLimits,
 }
 
 impl Config {
@@ -38,6 +44,9 @@ impl Config {
     /// Checks ranges that serde cannot.
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.flow.validate()?;
+        self.pafsis.validate()?;
+        self.mofis.validate()?;
+        self.control.validate()?;
         self.offis.check().map_err(|(field, problem)| ConfigError::Invalid { field, problem })
     }
 }

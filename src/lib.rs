@@ -8,7 +8,11 @@
 //! | [`frames`] | reading images and frame folders (PNG/JPEG → 8-bit luma, `odometry.csv`) | |
 //! | [`flow`] | block-matching optical flow: parameters, the flow field, CPU and GPU engines | §2.2, §5 |
 //! | [`offis`] | OFFIS: quadrant attributes, structure masks, obstacle zoom-in, distances from flow | §2.3–§5 |
+//! | [`fuzzy`] | Mamdani fuzzy inference: TOML rule files, validation, compiled fast evaluation | §5 |
 //! | [`perception`] | the OFFIS output: TPO shape/distance, nearest obstacle, structure masks | §2.2 |
+//! | [`pafsis`] | topological map, global plan (mission → waypoints), local plan (landmarks + odometry → goal velocity/angle) | §2.2 |
+//! | [`mofis`] | fuzzy collision avoidance and its fusion with the goal → set-point | §2.2 |
+//! | [`control`] | set-point safety limiter: speed, turn rate, acceleration | |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
@@ -16,7 +20,11 @@
 
 pub mod cli;
 pub mod config;
+pub mod control;
 pub mod flow;
 pub mod frames;
+pub mod fuzzy;
+pub mod mofis;
 pub mod offis;
+pub mod pafsis;
 pub mod perception;

@@ -1,0 +1,281 @@
+//! MOFIS, the motion module of the paper (§2.2): a Mamdani collision-avoidance behaviour, a
+//! fuzzy fusion of avoidance with PAFSIS's goal orientation, and the safety limiter that turns
+//! the fused command into the set-point sent to the base.
+//!
+//! Per step: OFFIS's perception gives the avoidance inputs (obstacle distance and bearing, the
+//! distance to a wall/corner ahead); `rules/mofis/avoidance.toml` turns them into a speed factor
+//! and an avoidance turn; `rules/mofis/fusion.toml` weighs avoidance against the goal from the
+//! obstacle's distance and offset; then
+//!
+//! ```text
+//! v     = goal_velocity · speed
+//! omega = (1 − weight) · heading_gain · goal_angle + weight · turn · max_turn_rate
+//! ```
+//!
+//! and the [`Limiter`] clamps the result to the configured speed, turn-rate and acceleration
+//! limits. Without perception ([`Mofis::fallback`]) the set-point is an immediate stop.
+
+use crate::config::ConfigError;
+use crate::control::{ControlLimits, Limiter};
+use crate::fuzzy::{Evaluation, FuzzyError, FuzzySystem, InputId, OutputId};
+use crate::pafsis::{Goal, GoalStatus};
+use crate::perception::{Perception, TpoShape};
+use hal::BodyVelocity;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The `[mofis]` config table.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MofisParams {
+    /// Folder with `avoidance.toml` and `fusion.toml` (the rule bases).
+    pub rules_dir: PathBuf,
+    /// Goal behaviour turn rate per radian of goal angle, 1/s (ω_goal = gain · angle).
+    pub heading_gain: f64,
+    /// Distance fed to the rule bases when nothing is seen (no obstacle, open ahead), m; the
+    /// top of the distance universes.
+    pub sensing_range_m: f64,
+    /// Distance assumed for an obstacle that OFFIS reports without a distance (the robot is not
+    /// translating, so depth is unknown), m. Medium by default: slow down and steer, don't stop.
+    pub unknown_obstacle_distance_m: f64,
+    /// An obstacle within this bearing of dead ahead is passed on the goal's side, rad.
+    pub dead_ahead_rad: f64,
+}
+
+impl Default for MofisParams {
+    fn default() -> Self {
+        Self {
+            rules_dir: PathBuf::from("rules/mofis"),
+            heading_gain: 1.5,
+            sensing_range_m: 5.0,
+            unknown_obstacle_distance_m: 1.5,
+            dead_ahead_rad: 0.05,
+        }
+    }
+}
+
+impl MofisParams {
+    /// Checks ranges that serde cannot.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, problem: &str| {
+            Err(ConfigError::Invalid { field: format!("mofis.{field}"), problem: problem.into() })
+        };
+        if !(self.heading_gain.is_finite() && self.heading_gain > 0.0) {
+            return bad("heading_gain", "must be a positive finite number (1/s)");
+        }
+        if !(self.sensing_range_m.is_finite() && self.sensing_range_m > 0.0) {
+            return bad("sensing_range_m", "must be a positive finite distance in m");
+        }
+        if !(self.unknown_obstacle_distance_m.is_finite() && self.unknown_obstacle_distance_m >= 0.0) {
+            return bad("unknown_obstacle_distance_m", "must be a finite distance ≥ 0 in m");
+        }
+        if !(self.dead_ahead_rad.is_finite() && (0.0..0.5).contains(&self.dead_ahead_rad)) {
+            return bad("dead_ahead_rad", "must be in [0, 0.5) rad");
+        }
+        Ok(())
+    }
+}
+
+/// Why MOFIS could not be built or evaluated.
+#[derive(Debug, thiserror::Error)]
+pub enum MofisError {
+    #[error("MOFIS rule base {}: {source}", path.display())]
+    Rules {
+        path: PathBuf,
+        #[source]
+        source: FuzzyError,
+    },
+    #[error("MOFIS rule base {origin} lacks {what} '{name}', which MOFIS feeds/reads; see docs/navigation.md")]
+    Missing { origin: String, what: &'static str, name: &'static str },
+    #[error("MOFIS rule base {origin} has inputs {names:?}; MOFIS feeds exactly {expected}: {wanted}")]
+    InputCount { origin: String, names: Vec<String>, expected: usize, wanted: &'static str },
+    #[error("MOFIS evaluation failed: {0}")]
+    Evaluate(#[from] FuzzyError),
+}
+
+/// The avoidance behaviour's crisp outputs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Avoidance {
+    /// Fraction of the goal velocity the situation allows, [0, 1].
+    pub speed: f64,
+    /// Avoidance turn as a fraction of the maximum turn rate, [−1, 1], + = left.
+    pub turn: f64,
+}
+
+/// Everything MOFIS decided in one step (for the log and the terminal).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct MofisOutput {
+    /// What the avoidance rule base saw: obstacle distance, bearing, front distance (m, rad, m).
+    pub inputs: [f64; 3],
+    pub avoidance: Avoidance,
+    /// Weight of avoidance against goal orientation, [0, 1].
+    pub weight: f64,
+    /// The fused command before the limiter.
+    pub fused: BodyVelocity,
+    /// The set-point to send: `fused` after the limiter.
+    pub setpoint: BodyVelocity,
+}
+
+/// The rule bases, their variable ids, and the limiter state.
+#[derive(Clone, Debug)]
+pub struct Mofis {
+    params: MofisParams,
+    avoidance: FuzzySystem,
+    fusion: FuzzySystem,
+    avoid_in: [InputId; 3],
+    avoid_out: [OutputId; 2],
+    fusion_in: [InputId; 2],
+    fusion_out: OutputId,
+    avoid_ev: Evaluation,
+    fusion_ev: Evaluation,
+    avoid_buf: Vec<f64>,
+    fusion_buf: Vec<f64>,
+    limiter: Limiter,
+    /// The side (+1 left, −1 right) chosen to pass the current dead-ahead obstacle.
+    pass_side: Option<f64>,
+}
+
+impl Mofis {
+    /// Loads `avoidance.toml` and `fusion.toml` from `params.rules_dir`.
+    pub fn load(params: MofisParams, limits: ControlLimits) -> Result<Self, MofisError> {
+        let read = |name: &str| {
+            let path = params.rules_dir.join(name);
+            FuzzySystem::from_file(&path).map_err(|source| MofisError::Rules { path, source })
+        };
+        let avoidance = read("avoidance.toml")?;
+        let fusion = read("fusion.toml")?;
+        Self::new(params, limits, avoidance, fusion)
+    }
+
+    /// Builds MOFIS from already loaded rule bases; checks that they have the variables MOFIS
+    /// feeds and reads.
+    pub fn new(
+        params: MofisParams,
+        limits: ControlLimits,
+        avoidance: FuzzySystem,
+        fusion: FuzzySystem,
+    ) -> Result<Self, MofisError> {
+        let input = |sys: &FuzzySystem, name: &'static str| {
+            sys.input(name).map_err(|_| MofisError::Missing { origin: sys.origin().into(), what: "input", name })
+        };
+        let output = |sys: &FuzzySystem, name: &'static str| {
+            sys.output(name).map_err(|_| MofisError::Missing { origin: sys.origin().into(), what: "output", name })
+        };
+        let avoid_in = [
+            input(&avoidance, "obstacle_distance")?,
+            input(&avoidance, "obstacle_bearing")?,
+            input(&avoidance, "front_distance")?,
+        ];
+        let avoid_out = [output(&avoidance, "speed")?, output(&avoidance, "turn")?];
+        let fusion_in = [input(&fusion, "obstacle_distance")?, input(&fusion, "obstacle_offset")?];
+        let fusion_out = output(&fusion, "weight")?;
+        let wanted = [
+            (&avoidance, 3, "obstacle_distance, obstacle_bearing, front_distance"),
+            (&fusion, 2, "obstacle_distance, obstacle_offset"),
+        ];
+        for (sys, expected, wanted) in wanted {
+            if sys.inputs().len() != expected {
+                return Err(MofisError::InputCount {
+                    origin: sys.origin().into(),
+                    names: sys.inputs().iter().map(|v| v.name.clone()).collect(),
+                    expected,
+                    wanted,
+                });
+            }
+        }
+        Ok(Self {
+            avoid_ev: avoidance.evaluation(),
+            fusion_ev: fusion.evaluation(),
+            avoid_buf: vec![0.0; 3],
+            fusion_buf: vec![0.0; 2],
+            params,
+            avoidance,
+            fusion,
+            avoid_in,
+            avoid_out,
+            fusion_in,
+            fusion_out,
+            limiter: Limiter::new(limits),
+            pass_side: None,
+        })
+    }
+
+    pub fn limiter(&self) -> &Limiter {
+        &self.limiter
+    }
+
+    /// Perception is missing (camera stall, OFFIS failure): stop now.
+    pub fn fallback(&mut self) -> BodyVelocity {
+        self.limiter.stop()
+    }
+
+    /// The avoidance inputs for `p`: obstacle distance and bearing, and the distance to a wall
+    /// or corner ahead. Unknown or absent values become the sensing range (nothing there) —
+    /// except a present obstacle without a distance, which is assumed at
+    /// `unknown_obstacle_distance_m`, and without a bearing, dead ahead.
+    pub fn inputs(&self, p: &Perception) -> [f64; 3] {
+        let range = self.params.sensing_range_m;
+        let finite = |x: Option<f64>| x.filter(|v| v.is_finite());
+        let (dist, bearing) = if p.obstacle.present {
+            (
+                finite(p.obstacle.distance_m).unwrap_or(self.params.unknown_obstacle_distance_m).clamp(0.0, range),
+                finite(p.obstacle.bearing_rad).unwrap_or(0.0),
+            )
+        } else {
+            (range, 0.0)
+        };
+        let front = match p.tpo.shape {
+            TpoShape::Wall | TpoShape::Corner => finite(p.tpo.distance_m).map_or(range, |d| d.clamp(0.0, range)),
+            TpoShape::Door | TpoShape::Corridor | TpoShape::None => range,
+        };
+        [dist, bearing, front]
+    }
+
+    /// One step: fuse collision avoidance for `perception` with PAFSIS's `goal`, and limit the
+    /// result for a step `dt` seconds after the previous one. A goal that is not active (arrived,
+    /// failed) brings the robot to a stop within the deceleration limits.
+    pub fn step(&mut self, perception: &Perception, goal: &Goal, dt: f64) -> Result<MofisOutput, MofisError> {
+        let inputs = self.inputs(perception);
+        let [dist, mut bearing, front] = inputs;
+        // A dead-ahead obstacle gives the symmetric rule base no side: pass it on the goal's
+        // side, and keep that side while the obstacle stays in view (no dithering).
+        if !perception.obstacle.present {
+            self.pass_side = None;
+        } else if bearing.abs() < self.params.dead_ahead_rad {
+            let goal_side = if goal.angle_rad < 0.0 { -1.0 } else { 1.0 };
+            let side = *self.pass_side.get_or_insert(goal_side);
+            bearing = -side * self.params.dead_ahead_rad;
+        }
+        for (id, v) in self.avoid_in.iter().zip([dist, bearing, front]) {
+            self.avoid_buf[id.0] = v;
+        }
+        self.avoidance.evaluate_into(&self.avoid_buf, &mut self.avoid_ev)?;
+        let avoidance = Avoidance {
+            speed: self.avoid_ev.value(self.avoid_out[0]).clamp(0.0, 1.0),
+            turn: self.avoid_ev.value(self.avoid_out[1]).clamp(-1.0, 1.0),
+        };
+        for (id, v) in self.fusion_in.iter().zip([dist, bearing.abs()]) {
+            self.fusion_buf[id.0] = v;
+        }
+        self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
+        let weight = self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0);
+
+        let fused = if goal.status == GoalStatus::Active {
+            let max_turn = self.limiter.limits().max_turn_rate;
+            let goal_omega = (self.params.heading_gain * goal.angle_rad).clamp(-max_turn, max_turn);
+            BodyVelocity {
+                v: goal.velocity * avoidance.speed,
+                omega: (1.0 - weight) * goal_omega + weight * avoidance.turn * max_turn,
+            }
+        } else {
+            BodyVelocity::ZERO
+        };
+        let setpoint = self.limiter.limit(fused, dt);
+        Ok(MofisOutput { inputs, avoidance, weight, fused, setpoint })
+    }
+}
+
+/// Loads both rule bases from `dir` with default parameters (for tools and tests).
+pub fn load_default(dir: impl AsRef<Path>, limits: ControlLimits) -> Result<Mofis, MofisError> {
+    Mofis::load(MofisParams { rules_dir: dir.as_ref().to_path_buf(), ..MofisParams::default() }, limits)
+}

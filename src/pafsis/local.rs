@@ -1,0 +1,637 @@
+//! PAFSIS local planning (paper §2.2: "PAFSIS identifies a local goal and navigates the mobile
+//! robot to the local goal"). The global plan is unrolled into *legs* (turn on the spot, drive
+//! through a doorway, follow a corridor to a landmark); a state machine tracks progress along
+//! the current leg from odometry (distance along the leg's direction, heading change) corrected
+//! by recognised landmarks (OFFIS door sightings re-localise the robot along the corridor; a
+//! corner or wall seen ahead ends a corridor), and outputs the goal-oriented velocity and angle.
+//!
+//! When a landmark does not show up where expected (the robot travelled `miss_factor` × the
+//! leg's length without seeing the corner/wall that ends it), the planner re-localises to the
+//! place the leg leads to and replans from there; after `max_replans` it gives up (stop).
+//!
+//! Pure and deterministic: no clocks, no I/O; the same inputs give the same outputs.
+
+use super::PafsisParams;
+use super::global::{Mission, Plan, PlanError, plan};
+use super::map::{Action, Side, TopoMap, Until, wrap_angle};
+use crate::perception::{Perception, TpoShape};
+use hal::BodyVelocity;
+use serde::Serialize;
+use std::fmt;
+
+/// Within a streak of door frames, a door distance that grows by more than this is a new door.
+const NEW_DOOR_JUMP_M: f64 = 0.5;
+
+/// A door the robot expects to pass (or stop at) on a corridor leg.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ExpectedDoor {
+    /// The door's place name, when the map names it.
+    pub name: Option<String>,
+    pub side: Option<Side>,
+    /// Where it lies along the leg, m from the leg's start, when the map says so.
+    pub at_m: Option<f64>,
+}
+
+/// What ends a corridor leg.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub enum LegEnd {
+    /// The odometric length (corrected by door sightings).
+    Distance,
+    /// Abeam this door: the last entry of the leg's doors.
+    Door,
+    /// A corner seen ahead within the stop distance.
+    Corner,
+    /// A wall seen ahead within the stop distance.
+    Wall,
+}
+
+/// One elementary motion of the plan.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub enum LegKind {
+    /// Turn on the spot to `heading_rad` (map frame).
+    Turn,
+    /// Drive straight through `door` for `length_m`.
+    Doorway { door: String, length_m: f64 },
+    /// Follow a corridor for about `length_m`, passing `doors` (the target door last when the
+    /// leg ends at a door).
+    Corridor { length_m: f64, doors: Vec<ExpectedDoor>, end: LegEnd },
+}
+
+/// A leg: what to do, in which map direction, and which place it leads to.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Leg {
+    pub kind: LegKind,
+    /// Map-frame heading of the leg (the target heading for a turn), rad.
+    pub heading_rad: f64,
+    /// The place reached when the map edge this leg belongs to is done (used to re-localise).
+    pub leads_to: String,
+    /// A metric line the leg follows (a point and the heading), when the map has positions;
+    /// used only with a pose hint.
+    pub line_point_m: Option<[f64; 2]>,
+}
+
+impl fmt::Display for Leg {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match &self.kind {
+            LegKind::Turn => write!(f, "turn to {:.0}°", self.heading_rad.to_degrees()),
+            LegKind::Doorway { door, length_m } => write!(f, "go through {door} ({length_m:.1} m)"),
+            LegKind::Corridor { length_m, doors, end } => {
+                let count = |s: Side| doors.iter().filter(|d| d.side == Some(s)).count();
+                let (mut l, mut r) = (count(Side::Left), count(Side::Right));
+                let last = doors.last().filter(|_| *end == LegEnd::Door);
+                if let Some(d) = last {
+                    match d.side {
+                        Some(Side::Left) => l -= 1,
+                        Some(Side::Right) => r -= 1,
+                        None => {}
+                    }
+                }
+                write!(f, "follow the corridor {length_m:.1} m passing {l} doors left, {r} right")?;
+                match (end, last) {
+                    (LegEnd::Door, Some(d)) => write!(f, ", stop at {}", d.name.as_deref().unwrap_or("the door")),
+                    (LegEnd::Corner, _) => write!(f, " until the corner"),
+                    (LegEnd::Wall, _) => write!(f, " until the wall"),
+                    _ => Ok(()),
+                }
+            }
+        }
+    }
+}
+
+/// Unrolls a plan into legs, starting with the robot facing `start_heading_rad` (map frame).
+/// A turn on the spot is inserted wherever the robot would start an edge facing another way
+/// than the edge's `heading_deg`; consecutive straight corridor edges merge into one leg whose
+/// intermediate stops become doors to pass (with known positions).
+pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
+    const ALIGN_TOLERANCE_RAD: f64 = 0.02;
+    let mut legs: Vec<Leg> = Vec::new();
+    let mut heading = start_heading_rad;
+    for &k in &plan.edges {
+        let edge = &map.edges[k];
+        let edge_heading = wrap_angle(edge.heading_deg.to_radians());
+        let point = map.place(&edge.to).and_then(|p| p.position_m);
+        let mut turned = false;
+        if wrap_angle(edge_heading - heading).abs() > ALIGN_TOLERANCE_RAD {
+            legs.push(Leg {
+                kind: LegKind::Turn,
+                heading_rad: edge_heading,
+                leads_to: edge.to.clone(),
+                line_point_m: None,
+            });
+            turned = true;
+        }
+        heading = edge_heading;
+        for action in &edge.actions {
+            let leg = |kind, heading_rad| Leg { kind, heading_rad, leads_to: edge.to.clone(), line_point_m: point };
+            match action {
+                Action::ExitRoom { door, length_m }
+                | Action::EnterRoom { door, length_m }
+                | Action::GoThroughDoor { door, length_m } => {
+                    legs.push(leg(LegKind::Doorway { door: door.clone(), length_m: *length_m }, heading));
+                    turned = false;
+                }
+                Action::Turn { .. } => {
+                    heading = wrap_angle(heading + action.turn_rad());
+                    legs.push(Leg { line_point_m: None, ..leg(LegKind::Turn, heading) });
+                    turned = true;
+                }
+                Action::FollowCorridor { length_m, doors_left, doors_right, until } => {
+                    let unnamed =
+                        |n: u32, side| (0..n).map(move |_| ExpectedDoor { name: None, side: Some(side), at_m: None });
+                    let new_doors = unnamed(*doors_left, Side::Left).chain(unnamed(*doors_right, Side::Right));
+                    let end = match until {
+                        Until::Distance => LegEnd::Distance,
+                        Until::Corner => LegEnd::Corner,
+                        Until::Wall => LegEnd::Wall,
+                    };
+                    let mergeable = !turned
+                        && legs.last().is_some_and(|l| {
+                            matches!(&l.kind, LegKind::Corridor { end: LegEnd::Door | LegEnd::Distance, .. })
+                                && wrap_angle(l.heading_rad - heading).abs() <= ALIGN_TOLERANCE_RAD
+                        });
+                    if mergeable && let Some(last) = legs.last_mut() {
+                        if let LegKind::Corridor { length_m: l0, doors, end: e0 } = &mut last.kind {
+                            *l0 += length_m;
+                            doors.extend(new_doors);
+                            *e0 = end;
+                        }
+                        last.leads_to = edge.to.clone();
+                        last.line_point_m = point;
+                    } else {
+                        legs.push(leg(
+                            LegKind::Corridor { length_m: *length_m, doors: new_doors.collect(), end },
+                            heading,
+                        ));
+                    }
+                    turned = false;
+                }
+                Action::StopAtDoor { door, side } => {
+                    if let Some(Leg { kind: LegKind::Corridor { length_m, doors, end }, .. }) = legs.last_mut() {
+                        doors.push(ExpectedDoor { name: Some(door.clone()), side: Some(*side), at_m: Some(*length_m) });
+                        *end = LegEnd::Door;
+                    }
+                }
+            }
+        }
+    }
+    legs
+}
+
+/// What the planner wants this step.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Goal {
+    /// Goal-oriented velocity, m/s (≥ 0).
+    pub velocity: f64,
+    /// Goal-oriented angle: where the local goal lies relative to the heading, rad, + = left.
+    pub angle_rad: f64,
+    pub status: GoalStatus,
+}
+
+/// Where the mission stands.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GoalStatus {
+    #[default]
+    Active,
+    Arrived,
+    /// Landmarks kept failing to appear; the robot must stop.
+    Failed,
+}
+
+/// Notable things that happened during a step (for the terminal and the log).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
+pub enum PafsisEvent {
+    LegStarted {
+        index: usize,
+        leg: String,
+    },
+    /// A door sighting matched an expected door; `correction_m` moved the progress estimate.
+    DoorMatched {
+        door: Option<String>,
+        at_m: Option<f64>,
+        correction_m: f64,
+    },
+    /// A door sighting that matched nothing expected.
+    DoorIgnored {
+        estimated_at_m: Option<f64>,
+    },
+    LandmarkMissed {
+        leg: usize,
+        what: String,
+    },
+    Replanned {
+        from: String,
+        waypoints: Vec<String>,
+    },
+    Arrived {
+        place: String,
+    },
+    Failed {
+        reason: String,
+    },
+}
+
+/// An external, metric pose (the simulator's ground truth, or a future localiser): map-frame
+/// position, m, and heading, rad. Optional: the planner works without it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct PoseHint {
+    pub x: f64,
+    pub y: f64,
+    pub heading_rad: f64,
+}
+
+/// Progress along the plan, for display.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Progress {
+    pub leg: usize,
+    pub legs: usize,
+    pub description: String,
+    /// Distance along the current leg, m (landmark-corrected).
+    pub along_m: f64,
+    /// Doors of the current leg already passed (sighted or missed).
+    pub doors_passed: usize,
+    /// Of those, how many were actually sighted.
+    pub doors_sighted: usize,
+    pub replans: u32,
+    /// Heading estimate, rad, map frame.
+    pub heading_rad: f64,
+}
+
+/// The PAFSIS planner: global plan + local state machine.
+#[derive(Clone, Debug)]
+pub struct Pafsis {
+    map: TopoMap,
+    mission: Mission,
+    params: PafsisParams,
+    plan: Plan,
+    legs: Vec<Leg>,
+    leg: usize,
+    /// Distance along the current leg, m.
+    along_m: f64,
+    /// Index of the next expected door in the current corridor leg.
+    next_door: usize,
+    doors_sighted: usize,
+    heading_rad: f64,
+    /// The TPO shape seen in the last consecutive frames, and how many.
+    streak: (TpoShape, u32),
+    door_sighting_reported: bool,
+    /// Expected position of the door matched in the current streak of door frames.
+    tracking: Option<f64>,
+    last_door_distance: Option<f64>,
+    replans: u32,
+    status: GoalStatus,
+    events: Vec<PafsisEvent>,
+}
+
+impl Pafsis {
+    /// Plans `mission` on `map`. The robot starts at the mission's first place, facing that
+    /// place's `heading_deg` (or the first edge's direction when the map gives none).
+    pub fn new(map: TopoMap, mission: Mission, params: PafsisParams) -> Result<Self, PlanError> {
+        let plan = plan(&map, &mission)?;
+        let start_heading = map
+            .place(&mission.from)
+            .and_then(|p| p.heading_deg)
+            .map(f64::to_radians)
+            .or_else(|| plan.edges.first().map(|&k| map.edges[k].heading_deg.to_radians()))
+            .unwrap_or(0.0);
+        let legs = unroll(&map, &plan, start_heading);
+        let mut me = Self {
+            map,
+            mission,
+            params,
+            plan,
+            legs,
+            leg: 0,
+            along_m: 0.0,
+            next_door: 0,
+            doors_sighted: 0,
+            heading_rad: wrap_angle(start_heading),
+            streak: (TpoShape::None, 0),
+            door_sighting_reported: false,
+            tracking: None,
+            last_door_distance: None,
+            replans: 0,
+            status: GoalStatus::Active,
+            events: Vec::new(),
+        };
+        me.start_leg(0);
+        Ok(me)
+    }
+
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    pub fn legs(&self) -> &[Leg] {
+        &self.legs
+    }
+
+    pub fn mission(&self) -> &Mission {
+        &self.mission
+    }
+
+    pub fn map(&self) -> &TopoMap {
+        &self.map
+    }
+
+    pub fn status(&self) -> GoalStatus {
+        self.status
+    }
+
+    /// Takes the events since the last call.
+    pub fn take_events(&mut self) -> Vec<PafsisEvent> {
+        std::mem::take(&mut self.events)
+    }
+
+    pub fn progress(&self) -> Progress {
+        let (doors_passed, description) = match self.legs.get(self.leg) {
+            Some(l) => (self.next_door, l.to_string()),
+            None => (0, format!("at {}", self.mission.to)),
+        };
+        Progress {
+            leg: self.leg,
+            legs: self.legs.len(),
+            description,
+            along_m: self.along_m,
+            doors_passed,
+            doors_sighted: self.doors_sighted,
+            replans: self.replans,
+            heading_rad: self.heading_rad,
+        }
+    }
+
+    /// Integrates odometry only: for steps without perception (the robot is being stopped),
+    /// so that progress stays right.
+    pub fn advance_odometry(&mut self, odo: BodyVelocity, dt: f64) {
+        if !(dt.is_finite() && dt > 0.0 && odo.v.is_finite() && odo.omega.is_finite()) {
+            return;
+        }
+        self.heading_rad = wrap_angle(self.heading_rad + odo.omega * dt);
+        if let Some(leg) = self.legs.get(self.leg)
+            && !matches!(leg.kind, LegKind::Turn)
+        {
+            self.along_m += odo.v * dt * (self.heading_rad - leg.heading_rad).cos();
+        }
+    }
+
+    /// One control step: integrate odometry (`odo` measured over the last `dt` seconds), take in
+    /// the landmarks of `perception`, advance the state machine, and return the goal.
+    pub fn step(&mut self, perception: &Perception, odo: BodyVelocity, dt: f64) -> Goal {
+        self.step_with_hint(perception, odo, dt, None)
+    }
+
+    /// [`Pafsis::step`] with an optional metric pose. A hint replaces the odometric heading and
+    /// adds a cross-track correction toward the leg's line when the map has positions; progress
+    /// along legs, landmarks, arrival and replanning stay landmark + odometry based.
+    pub fn step_with_hint(
+        &mut self,
+        perception: &Perception,
+        odo: BodyVelocity,
+        dt: f64,
+        hint: Option<PoseHint>,
+    ) -> Goal {
+        self.advance_odometry(odo, dt);
+        if let Some(h) = hint.filter(|h| h.heading_rad.is_finite()) {
+            self.heading_rad = wrap_angle(h.heading_rad);
+        }
+        if self.status != GoalStatus::Active {
+            return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
+        }
+        self.observe(perception);
+        // A leg may finish and the next one start within one step; bounded by the leg count.
+        for _ in 0..=self.legs.len() {
+            if self.status != GoalStatus::Active {
+                break;
+            }
+            if !self.leg_done(perception) {
+                break;
+            }
+        }
+        if self.status != GoalStatus::Active {
+            return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
+        }
+        self.command(perception, hint)
+    }
+
+    /// Updates the shape streak and handles door sightings on corridor legs.
+    fn observe(&mut self, p: &Perception) {
+        let confident = p.tpo.confidence >= self.params.landmark_min_confidence;
+        let shape = if confident { p.tpo.shape } else { TpoShape::None };
+        if shape == self.streak.0 {
+            self.streak.1 = self.streak.1.saturating_add(1);
+        } else {
+            self.streak = (shape, 1);
+            self.door_sighting_reported = false;
+        }
+        if shape != TpoShape::Door {
+            self.tracking = None;
+            self.last_door_distance = None;
+            return;
+        }
+        if self.streak.1 < self.params.landmark_min_frames {
+            return;
+        }
+        let distance = p.tpo.distance_m.filter(|d| d.is_finite() && *d >= 0.0 && *d <= self.params.door_max_range_m);
+        // Within one streak of door frames, a distance that jumps up means the next door came
+        // into view: a new sighting.
+        let new_door = match (distance, self.last_door_distance) {
+            (Some(d), Some(prev)) => d > prev + NEW_DOOR_JUMP_M,
+            _ => false,
+        };
+        if let Some(d) = distance {
+            self.last_door_distance = Some(d);
+        }
+        if !self.door_sighting_reported || new_door {
+            self.door_sighting_reported = true;
+            self.tracking = None;
+            self.door_sighted(distance);
+        } else if let (Some(at), Some(d)) = (self.tracking, distance) {
+            // Still looking at the matched door: keep the progress estimate pinned to it.
+            self.along_m = at - d;
+        }
+    }
+
+    /// Matches a door sighting `distance` ahead (if known) against the next expected doors.
+    fn door_sighted(&mut self, distance: Option<f64>) {
+        let Some(Leg { kind: LegKind::Corridor { doors, .. }, .. }) = self.legs.get(self.leg) else {
+            return;
+        };
+        let gate = self.params.landmark_gate_m;
+        let seen_at = distance.map(|d| self.along_m + d);
+        let mut i = self.next_door;
+        while let Some(door) = doors.get(i) {
+            let window_ok = match (door.at_m, seen_at) {
+                (Some(at), Some(e)) if e < at - gate => None,
+                (Some(at), Some(e)) if e > at + gate => Some(false),
+                (Some(at), None) if self.along_m < at - self.params.door_max_range_m - gate => None,
+                _ => Some(true),
+            };
+            match window_ok {
+                None => break,
+                Some(false) => i += 1,
+                Some(true) => {
+                    let correction = match (door.at_m, seen_at) {
+                        (Some(at), Some(e)) => at - e,
+                        _ => 0.0,
+                    };
+                    let (name, at_m) = (door.name.clone(), door.at_m);
+                    for missed in &doors[self.next_door..i] {
+                        let what = describe_door(missed);
+                        self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
+                    }
+                    self.along_m += correction;
+                    self.tracking = at_m.filter(|_| seen_at.is_some());
+                    self.next_door = i + 1;
+                    self.doors_sighted += 1;
+                    self.events.push(PafsisEvent::DoorMatched { door: name, at_m, correction_m: correction });
+                    return;
+                }
+            }
+        }
+        self.events.push(PafsisEvent::DoorIgnored { estimated_at_m: seen_at });
+    }
+
+    /// Checks whether the current leg is complete; if so moves to the next (or arrives).
+    /// Returns whether a leg was completed.
+    fn leg_done(&mut self, p: &Perception) -> bool {
+        let Some(leg) = self.legs.get(self.leg) else {
+            self.arrive();
+            return false;
+        };
+        let done = match &leg.kind {
+            LegKind::Turn => wrap_angle(leg.heading_rad - self.heading_rad).abs() <= self.params.turn_tolerance_rad,
+            LegKind::Doorway { length_m, .. } => self.along_m >= *length_m,
+            LegKind::Corridor { length_m, doors, end } => {
+                // Doors whose window the robot has left without a sighting: missed.
+                let gate = self.params.landmark_gate_m;
+                while let Some(d) = doors.get(self.next_door)
+                    && d.at_m.is_some_and(|at| self.along_m > at + gate)
+                {
+                    let what = describe_door(d);
+                    self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
+                    self.next_door += 1;
+                }
+                match end {
+                    LegEnd::Distance | LegEnd::Door => {
+                        let done = self.along_m >= *length_m;
+                        if done {
+                            // Arrived by odometry: whatever was still expected went unseen.
+                            for d in &doors[self.next_door.min(doors.len())..] {
+                                let what = describe_door(d);
+                                self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
+                            }
+                        }
+                        done
+                    }
+                    LegEnd::Corner | LegEnd::Wall => {
+                        let want = if *end == LegEnd::Corner { TpoShape::Corner } else { TpoShape::Wall };
+                        let seen = self.streak.0 == want
+                            && self.streak.1 >= self.params.landmark_min_frames
+                            && p.tpo.distance_m.is_some_and(|d| d <= self.params.stop_distance_m);
+                        if !seen && self.along_m >= self.params.miss_factor * length_m {
+                            let what = format!("{:?} at the end of leg {}", end, self.leg).to_lowercase();
+                            self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
+                            self.replan();
+                            return true;
+                        }
+                        seen
+                    }
+                }
+            }
+        };
+        if done {
+            self.start_leg(self.leg + 1);
+        }
+        done
+    }
+
+    fn start_leg(&mut self, index: usize) {
+        self.leg = index;
+        self.along_m = 0.0;
+        self.next_door = 0;
+        self.doors_sighted = 0;
+        self.tracking = None;
+        // A door already in view when the leg starts counts for the new leg.
+        self.door_sighting_reported = false;
+        self.last_door_distance = None;
+        match self.legs.get(index) {
+            Some(leg) => self.events.push(PafsisEvent::LegStarted { index, leg: leg.to_string() }),
+            None => self.arrive(),
+        }
+    }
+
+    fn arrive(&mut self) {
+        if self.status == GoalStatus::Active {
+            self.status = GoalStatus::Arrived;
+            self.events.push(PafsisEvent::Arrived { place: self.mission.to.clone() });
+        }
+    }
+
+    /// Re-localises to the place the current leg leads to and plans again from there.
+    fn replan(&mut self) {
+        self.replans += 1;
+        let Some(from) = self.legs.get(self.leg).map(|l| l.leads_to.clone()) else { return };
+        if self.replans > self.params.max_replans {
+            self.fail(format!("{} landmarks failed to appear; giving up near {from}", self.replans));
+            return;
+        }
+        let mission = Mission { from: from.clone(), to: self.mission.to.clone() };
+        match plan(&self.map, &mission) {
+            Ok(p) => {
+                self.legs = unroll(&self.map, &p, self.legs[self.leg].heading_rad);
+                self.events.push(PafsisEvent::Replanned { from, waypoints: p.waypoints.clone() });
+                self.plan = p;
+                self.start_leg(0);
+            }
+            Err(e) => self.fail(e.to_string()),
+        }
+    }
+
+    fn fail(&mut self, reason: String) {
+        self.status = GoalStatus::Failed;
+        self.events.push(PafsisEvent::Failed { reason });
+    }
+
+    /// The goal-oriented velocity and angle for the current leg.
+    fn command(&self, p: &Perception, hint: Option<PoseHint>) -> Goal {
+        let Some(leg) = self.legs.get(self.leg) else {
+            return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
+        };
+        let mut angle = wrap_angle(leg.heading_rad - self.heading_rad);
+        if let (Some(h), Some([px, py]), false) = (hint, leg.line_point_m, matches!(leg.kind, LegKind::Turn)) {
+            // Signed distance of the robot left of the leg's line; steer back over a lookahead.
+            let (s, c) = leg.heading_rad.sin_cos();
+            let left_of_line = -(h.x - px) * s + (h.y - py) * c;
+            angle = wrap_angle(angle - left_of_line.atan2(self.params.lookahead_m));
+        }
+        let (speed, remaining) = match &leg.kind {
+            LegKind::Turn => (0.0, 0.0),
+            LegKind::Doorway { length_m, .. } => (self.params.door_speed, length_m - self.along_m),
+            LegKind::Corridor { length_m, end, .. } => {
+                let remaining = match end {
+                    LegEnd::Distance | LegEnd::Door => length_m - self.along_m,
+                    LegEnd::Corner | LegEnd::Wall => {
+                        let want = if *end == LegEnd::Corner { TpoShape::Corner } else { TpoShape::Wall };
+                        match p.tpo.distance_m.filter(|_| p.tpo.shape == want) {
+                            Some(d) => d - self.params.stop_distance_m,
+                            None => (length_m - self.along_m).max(self.params.slow_radius_m),
+                        }
+                    }
+                };
+                (self.params.cruise_speed, remaining)
+            }
+        };
+        let ramp = (remaining / self.params.slow_radius_m).clamp(self.params.min_speed_fraction, 1.0);
+        let velocity = if speed > 0.0 { speed * ramp * angle.cos().max(0.0) } else { 0.0 };
+        Goal { velocity, angle_rad: angle, status: self.status }
+    }
+}
+
+fn describe_door(d: &ExpectedDoor) -> String {
+    let side = d.side.map_or("", Side::name);
+    match &d.name {
+        Some(n) => format!("door {n} ({side})"),
+        None => format!("a door ({side})"),
+    }
+}

@@ -1,0 +1,104 @@
+//! PAFSIS, the path-planning module of the paper (§2.2): global planning on a topological map
+//! ([`map`], [`global`]) and local planning that follows the plan by landmarks and odometry
+//! ([`local`]), producing the goal-oriented velocity and angle that MOFIS fuses with collision
+//! avoidance.
+
+pub mod global;
+pub mod local;
+pub mod map;
+
+pub use global::{Mission, Plan, PlanError, plan};
+pub use local::{Goal, GoalStatus, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress};
+pub use map::{Action, MapError, PlaceKind, Side, TopoMap, Until};
+
+use crate::config::ConfigError;
+use serde::{Deserialize, Serialize};
+
+/// The `[pafsis]` config table: speeds of the goal behaviour and how landmarks are trusted.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PafsisParams {
+    /// Goal velocity along corridors, m/s.
+    pub cruise_speed: f64,
+    /// Goal velocity through doorways, m/s.
+    pub door_speed: f64,
+    /// Distance before a leg's end over which the goal velocity ramps down, m.
+    pub slow_radius_m: f64,
+    /// The ramp never goes below this fraction of the leg's speed (so the robot gets there).
+    pub min_speed_fraction: f64,
+    /// A turn on the spot is done within this angle, rad.
+    pub turn_tolerance_rad: f64,
+    /// A corner/wall that ends a corridor is reached at this distance ahead, m.
+    pub stop_distance_m: f64,
+    /// Minimum TPO confidence for a landmark to count.
+    pub landmark_min_confidence: f64,
+    /// Consecutive frames a landmark must be seen to count (debounce).
+    pub landmark_min_frames: u32,
+    /// A door sighting matches an expected door within this distance of its expected place, m.
+    pub landmark_gate_m: f64,
+    /// Door sightings farther than this are not used for position correction, m.
+    pub door_max_range_m: f64,
+    /// A landmark that ends a leg is declared missing after this multiple of the leg's length.
+    pub miss_factor: f64,
+    /// Replans allowed before the mission fails.
+    pub max_replans: u32,
+    /// Lookahead of the cross-track correction when a pose hint is given, m.
+    pub lookahead_m: f64,
+}
+
+impl Default for PafsisParams {
+    fn default() -> Self {
+        Self {
+            cruise_speed: 0.35,
+            door_speed: 0.2,
+            slow_radius_m: 1.0,
+            min_speed_fraction: 0.15,
+            turn_tolerance_rad: 0.05,
+            stop_distance_m: 0.8,
+            landmark_min_confidence: 0.5,
+            landmark_min_frames: 2,
+            landmark_gate_m: 1.0,
+            door_max_range_m: 5.0,
+            miss_factor: 1.5,
+            max_replans: 3,
+            lookahead_m: 1.5,
+        }
+    }
+}
+
+impl PafsisParams {
+    /// Checks ranges that serde cannot.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, problem: &str| {
+            Err(ConfigError::Invalid { field: format!("pafsis.{field}"), problem: problem.into() })
+        };
+        let positive = [
+            ("cruise_speed", self.cruise_speed),
+            ("door_speed", self.door_speed),
+            ("slow_radius_m", self.slow_radius_m),
+            ("turn_tolerance_rad", self.turn_tolerance_rad),
+            ("stop_distance_m", self.stop_distance_m),
+            ("landmark_gate_m", self.landmark_gate_m),
+            ("door_max_range_m", self.door_max_range_m),
+            ("lookahead_m", self.lookahead_m),
+        ];
+        for (field, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, "must be a positive finite number");
+            }
+        }
+        if !(0.0..=1.0).contains(&self.min_speed_fraction) {
+            return bad("min_speed_fraction", "must be in [0, 1]");
+        }
+        if !(0.0..=1.0).contains(&self.landmark_min_confidence) {
+            return bad("landmark_min_confidence", "must be in [0, 1]");
+        }
+        if self.landmark_min_frames == 0 {
+            return bad("landmark_min_frames", "must be at least 1");
+        }
+        if !(self.miss_factor.is_finite() && self.miss_factor > 1.0) {
+            return bad("miss_factor", "must be a finite number > 1 (e.g. 1.5 = 150% of the leg)");
+        }
+        Ok(())
+    }
+}

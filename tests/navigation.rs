@@ -1,0 +1,318 @@
+//! Navigation: the shipped office map, PAFSIS following a plan from scripted landmarks and
+//! odometry, and MOFIS behaviour.
+
+use flownav::pafsis::{GoalStatus, LegKind, Mission, Pafsis, PafsisEvent, PafsisParams, TopoMap};
+use flownav::perception::{Perception, Tpo, TpoShape};
+use hal::BodyVelocity;
+
+fn office() -> TopoMap {
+    TopoMap::load(concat!(env!("CARGO_MANIFEST_DIR"), "/maps/office.toml")).expect("maps/office.toml loads")
+}
+
+/// A robot in the office corridor (maps/office.toml geometry), driven by PAFSIS alone with an
+/// ideal heading controller, whose perception is scripted from its true pose: the nearest door
+/// 1–4 m ahead while in the corridor, else the end wall within 5 m, else "corridor".
+struct Walk {
+    x: f64,
+    y: f64,
+    heading: f64,
+    /// Odometry reports this fraction of the true distance (wheel slip, wrong wheel radius).
+    odo_scale: f64,
+    /// Whether OFFIS reports landmarks at all.
+    landmarks: bool,
+    path_m: f64,
+}
+
+const DOOR_X: [f64; 10] = [3.0, 5.0, 7.0, 9.0, 11.0, 13.0, 15.0, 17.0, 19.0, 21.0];
+
+impl Walk {
+    fn new(x: f64, y: f64, heading_deg: f64) -> Self {
+        Self { x, y, heading: heading_deg.to_radians(), odo_scale: 1.0, landmarks: true, path_m: 0.0 }
+    }
+
+    fn perceive(&self) -> Perception {
+        let mut p = Perception::default();
+        let along_corridor = self.heading.sin().abs() < 0.2 && self.y.abs() < 1.0;
+        if !self.landmarks || !along_corridor {
+            return p;
+        }
+        let dir = self.heading.cos().signum();
+        let door = DOOR_X.iter().map(|&dx| (dx - self.x) * dir).filter(|d| (1.0..=4.0).contains(d)).reduce(f64::min);
+        let wall = if dir > 0.0 { 24.0 - self.x } else { self.x };
+        p.tpo = match door {
+            Some(d) => Tpo { shape: TpoShape::Door, confidence: 0.9, distance_m: Some(d) },
+            None if wall <= 5.0 => Tpo { shape: TpoShape::Wall, confidence: 0.9, distance_m: Some(wall) },
+            None => Tpo { shape: TpoShape::Corridor, confidence: 0.9, distance_m: None },
+        };
+        p
+    }
+
+    /// Runs the mission to its end (or `max_s` seconds); returns the final status and all events.
+    fn run(&mut self, nav: &mut Pafsis, max_s: f64) -> (GoalStatus, Vec<PafsisEvent>) {
+        let dt = 0.05;
+        let mut odo = BodyVelocity::ZERO;
+        let mut events = Vec::new();
+        for _ in 0..(max_s / dt) as usize {
+            let goal = nav.step(&self.perceive(), odo, dt);
+            events.extend(nav.take_events());
+            if goal.status != GoalStatus::Active {
+                return (goal.status, events);
+            }
+            let omega = (1.5 * goal.angle_rad).clamp(-1.0, 1.0);
+            self.heading += omega * dt;
+            self.x += goal.velocity * dt * self.heading.cos();
+            self.y += goal.velocity * dt * self.heading.sin();
+            self.path_m += goal.velocity * dt;
+            odo = BodyVelocity::new(goal.velocity * self.odo_scale, omega);
+        }
+        (nav.status(), events)
+    }
+}
+
+fn mission(map: &TopoMap, m: &str) -> Pafsis {
+    Pafsis::new(map.clone(), m.parse::<Mission>().unwrap(), PafsisParams::default()).unwrap()
+}
+
+#[test]
+fn office_plan_r9_to_d2() {
+    let map = office();
+    let nav = mission(&map, "R9:D2");
+    assert_eq!(nav.plan().waypoints, ["R9", "D9", "D8", "D7", "D6", "D5", "D4", "D3", "D2"]);
+    assert_eq!(nav.plan().length_m, 17.0);
+    // Exit R9, turn right into the corridor (facing west), one merged corridor leg.
+    let legs = nav.legs();
+    assert_eq!(legs.len(), 3, "{legs:#?}");
+    assert!(matches!(&legs[0].kind, LegKind::Doorway { door, .. } if door == "D9"));
+    assert!(matches!(legs[1].kind, LegKind::Turn));
+    assert!((legs[1].heading_rad.abs() - std::f64::consts::PI).abs() < 1e-9);
+    assert_eq!(legs[2].to_string(), "follow the corridor 14.0 m passing 3 doors left, 3 right, stop at D2");
+}
+
+#[test]
+fn office_mission_arrives_in_front_of_d2() {
+    let map = office();
+    let mut nav = mission(&map, "R9:D2");
+    let mut walk = Walk::new(19.0, 3.0, -90.0);
+    let (status, events) = walk.run(&mut nav, 120.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!((walk.x - 5.0).abs() < 0.3 && walk.y.abs() < 0.2, "stopped at ({:.2}, {:.2})", walk.x, walk.y);
+    let matched = events.iter().filter(|e| matches!(e, PafsisEvent::DoorMatched { .. })).count();
+    assert_eq!(matched, 7, "D8..D3 passed and D2 sighted: {events:#?}");
+    assert!(!events.iter().any(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })));
+}
+
+#[test]
+fn door_sightings_correct_bad_odometry() {
+    let map = office();
+    // Odometry under-reports distance by 20%.
+    let mut with = Walk { odo_scale: 0.8, ..Walk::new(19.0, 3.0, -90.0) };
+    let (status, _) = with.run(&mut mission(&map, "R9:D2"), 120.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!((with.x - 5.0).abs() < 0.4, "with landmarks stopped at x = {:.2}", with.x);
+
+    let mut without = Walk { odo_scale: 0.8, landmarks: false, ..Walk::new(19.0, 3.0, -90.0) };
+    let (status, events) = without.run(&mut mission(&map, "R9:D2"), 120.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!(without.x < 2.0, "odometry alone overshoots D2 (x = {:.2})", without.x);
+    let missed = events.iter().filter(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })).count();
+    assert_eq!(missed, 7, "every door reported missing");
+}
+
+#[test]
+fn missing_end_wall_relocalises_and_stops() {
+    let map = office();
+    let mut nav = mission(&map, "D3:J1");
+    let mut walk = Walk { landmarks: false, ..Walk::new(7.0, 0.0, 180.0) };
+    let (status, events) = walk.run(&mut nav, 60.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!(events.iter().any(|e| matches!(e, PafsisEvent::Replanned { from, .. } if from == "J1")), "{events:#?}");
+    // The end wall at x = 0 was never reported; the robot gave up after 150% of the 6 m leg.
+    assert!((walk.path_m - 9.0).abs() < 0.3, "travelled {:.2} m", walk.path_m);
+
+    let mut nav = mission(&map, "D3:J1");
+    let mut walk = Walk::new(7.0, 0.0, 180.0);
+    let (status, events) = walk.run(&mut nav, 60.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!(!events.iter().any(|e| matches!(e, PafsisEvent::Replanned { .. })));
+    assert!((walk.x - 0.8).abs() < 0.1, "stops 0.8 m before the wall, at x = {:.2}", walk.x);
+}
+
+mod mofis {
+    use super::*;
+    use flownav::control::ControlLimits;
+    use flownav::fuzzy::FuzzySystem;
+    use flownav::mofis::{Mofis, MofisError, MofisParams, load_default};
+    use flownav::pafsis::Goal;
+    use flownav::perception::Obstacle;
+
+    fn mofis() -> Mofis {
+        load_default(concat!(env!("CARGO_MANIFEST_DIR"), "/rules/mofis"), ControlLimits::default()).unwrap()
+    }
+
+    fn obstacle(distance: f64, bearing: f64) -> Perception {
+        Perception {
+            obstacle: Obstacle {
+                present: true,
+                distance_m: Some(distance),
+                bearing_rad: Some(bearing),
+                cell: Some([4, 3]),
+            },
+            ..Perception::default()
+        }
+    }
+
+    fn goal(velocity: f64, angle_rad: f64) -> Goal {
+        Goal { velocity, angle_rad, status: GoalStatus::Active }
+    }
+
+    /// A long `dt` so that the acceleration limits do not hide the fused command.
+    const SETTLED: f64 = 10.0;
+
+    #[test]
+    fn obstacle_ahead_slows_and_turns_away() {
+        for (bearing, turn_sign) in [(0.1, -1.0), (-0.1, 1.0), (0.25, -1.0), (-0.25, 1.0)] {
+            let mut m = mofis();
+            let out = m.step(&obstacle(0.5, bearing), &goal(0.35, 0.0), SETTLED).unwrap();
+            assert!(out.setpoint.v < 0.1 * 0.35, "bearing {bearing}: v {}", out.setpoint.v);
+            assert!(out.setpoint.omega * turn_sign > 0.5, "bearing {bearing}: omega {}", out.setpoint.omega);
+            assert!(out.weight > 0.7, "avoidance dominates: {}", out.weight);
+        }
+    }
+
+    #[test]
+    fn dead_ahead_obstacle_is_passed_on_the_goal_side() {
+        for goal_angle in [-0.3, 0.3] {
+            let mut m = mofis();
+            let out = m.step(&obstacle(0.6, 0.0), &goal(0.35, goal_angle), SETTLED).unwrap();
+            assert!(out.setpoint.omega * goal_angle > 0.0, "goal {goal_angle}: omega {}", out.setpoint.omega);
+            assert!(out.setpoint.v < 0.1);
+        }
+    }
+
+    #[test]
+    fn no_obstacle_follows_the_goal() {
+        let mut m = mofis();
+        let out = m.step(&Perception::default(), &goal(0.35, 0.4), SETTLED).unwrap();
+        assert_eq!(out.avoidance.speed, 1.0);
+        assert_eq!(out.weight, 0.0);
+        assert!((out.setpoint.v - 0.35).abs() < 1e-9, "{:?}", out.setpoint);
+        assert!((out.setpoint.omega - 1.5 * 0.4).abs() < 1e-9, "{:?}", out.setpoint);
+        // A far obstacle aside changes nothing either.
+        let out = m.step(&obstacle(4.0, 0.5), &goal(0.35, -0.2), SETTLED).unwrap();
+        assert!((out.setpoint.omega + 0.3).abs() < 1e-9 && (out.setpoint.v - 0.35).abs() < 1e-9, "{out:?}");
+    }
+
+    #[test]
+    fn wall_ahead_slows_but_lets_the_goal_turn() {
+        let mut m = mofis();
+        let p = Perception {
+            tpo: Tpo { shape: TpoShape::Wall, confidence: 0.9, distance_m: Some(0.6) },
+            ..Perception::default()
+        };
+        let out = m.step(&p, &goal(0.35, 1.0), SETTLED).unwrap();
+        assert!(out.setpoint.v < 0.1, "{out:?}");
+        assert!((out.setpoint.omega - 1.0).abs() < 1e-9, "turn rate clamped to the limit: {out:?}");
+    }
+
+    #[test]
+    fn setpoints_obey_the_limits() {
+        let mut m = mofis();
+        // From rest, 0.1 s later: at most max_linear_accel · dt and max_angular_accel · dt.
+        let out = m.step(&Perception::default(), &goal(5.0, 3.0), 0.1).unwrap();
+        assert!((out.setpoint.v - 0.05).abs() < 1e-12 && (out.setpoint.omega - 0.3).abs() < 1e-12, "{out:?}");
+        for _ in 0..100 {
+            let out = m.step(&Perception::default(), &goal(5.0, 3.0), 0.1).unwrap();
+            assert!(out.setpoint.v <= 0.5 && out.setpoint.omega <= 1.0);
+        }
+        let out = m.step(&Perception::default(), &goal(f64::NAN, 0.0), 0.1).unwrap();
+        assert_eq!(out.setpoint, BodyVelocity::ZERO, "NaN goal: stop at once");
+        m.step(&Perception::default(), &goal(0.3, 0.0), SETTLED).unwrap();
+        assert_eq!(m.fallback(), BodyVelocity::ZERO, "no perception: stop at once");
+        let arrived = Goal { status: GoalStatus::Arrived, ..goal(0.3, 0.5) };
+        let out = m.step(&Perception::default(), &arrived, SETTLED).unwrap();
+        assert_eq!(out.setpoint, BodyVelocity::ZERO);
+    }
+
+    #[test]
+    fn bad_perception_values_do_not_panic() {
+        let mut m = mofis();
+        let mut p = obstacle(f64::NAN, f64::INFINITY);
+        p.tpo = Tpo { shape: TpoShape::Corner, confidence: f64::NAN, distance_m: Some(f64::NAN) };
+        let out = m.step(&p, &goal(0.3, 0.0), SETTLED).unwrap();
+        assert!(out.setpoint.v.is_finite() && out.setpoint.omega.is_finite());
+        assert!(out.setpoint.v < 0.3, "an obstacle of unknown distance slows the robot: {out:?}");
+    }
+
+    #[test]
+    fn rule_base_without_the_expected_variables_is_refused() {
+        let text = r#"
+            [[input]]
+            name = "obstacle_distance"
+            range = [0, 5]
+            terms = { near = { tri = [0, 0, 5] } }
+            [[input]]
+            name = "obstacle_offset"
+            range = [0, 1]
+            terms = { ahead = { tri = [0, 0, 1] } }
+            [[output]]
+            name = "w"
+            range = [0, 1]
+            terms = { low = { tri = [0, 0, 1] } }
+            [[rule]]
+            if = "obstacle_distance is near"
+            then = "w is low"
+        "#;
+        let fusion = FuzzySystem::from_toml_str(text, "myfusion.toml").unwrap();
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/rules/mofis/avoidance.toml");
+        let avoidance = FuzzySystem::from_file(dir).unwrap();
+        let e = Mofis::new(MofisParams::default(), ControlLimits::default(), avoidance, fusion).unwrap_err();
+        assert!(matches!(e, MofisError::Missing { name: "weight", .. }), "{e}");
+        assert!(e.to_string().contains("myfusion.toml") && e.to_string().contains("'weight'"), "{e}");
+    }
+
+    /// PAFSIS + MOFIS on the office mission with a person standing in the corridor: the robot
+    /// swerves around it and still stops in front of D2.
+    #[test]
+    fn office_mission_around_an_obstacle() {
+        for y in [-0.3, -0.15, 0.0, 0.15, 0.3] {
+            around_a_person_at(y);
+        }
+    }
+
+    fn around_a_person_at(person_y: f64) {
+        let map = office();
+        let mut nav = mission(&map, "R9:D2");
+        let mut m = mofis();
+        let mut walk = Walk::new(19.0, 3.0, -90.0);
+        let person = (12.0, person_y, 0.25); // x, y, radius
+        let dt = 0.05;
+        let (mut odo, mut min_clearance, mut arrived) = (BodyVelocity::ZERO, f64::INFINITY, false);
+        for _ in 0..(150.0 / dt) as usize {
+            let mut p = walk.perceive();
+            let (dx, dy) = (person.0 - walk.x, person.1 - walk.y);
+            let range = (dx * dx + dy * dy).sqrt() - person.2;
+            let bearing = flownav::pafsis::map::wrap_angle(dy.atan2(dx) - walk.heading);
+            min_clearance = min_clearance.min(range);
+            if range < 5.0 && bearing.abs() < 0.8 {
+                p.obstacle =
+                    Obstacle { present: true, distance_m: Some(range), bearing_rad: Some(bearing), cell: None };
+            }
+            let g = nav.step(&p, odo, dt);
+            if g.status == GoalStatus::Arrived {
+                arrived = true;
+                break;
+            }
+            let sp = m.step(&p, &g, dt).unwrap().setpoint;
+            walk.heading += sp.omega * dt;
+            walk.x += sp.v * dt * walk.heading.cos();
+            walk.y += sp.v * dt * walk.heading.sin();
+            // The corridor walls are at y = ±1 (robot radius 0.2 m); above y = 0.8 only in D9's doorway.
+            let clear_of_walls = walk.y > -0.8 && (walk.y < 0.8 || (walk.x - 19.0).abs() < 0.4);
+            assert!(clear_of_walls, "person at y {person_y}: hit a corridor wall at ({:.2}, {:.2})", walk.x, walk.y);
+            odo = sp;
+        }
+        assert!(arrived, "stuck at ({:.2}, {:.2})", walk.x, walk.y);
+        assert!(min_clearance > 0.3, "person at y {person_y}: came within {min_clearance:.2} m of the person");
+        assert!((walk.x - 5.0).abs() < 0.5, "stopped at x = {:.2}", walk.x);
+    }
+}
