@@ -168,11 +168,13 @@ pub struct DepthParams {
     pub min_radial_px: f64,
     /// Depths beyond this (m) are dropped as unmeasurable.
     pub max_depth_m: f64,
+    /// Located points lower than this above the floor (m) are floor, never an obstacle.
+    pub floor_height_m: f64,
 }
 
 impl Default for DepthParams {
     fn default() -> Self {
-        Self { min_speed_m_s: 0.02, min_radius_frac: 0.02, min_radial_px: 0.05, max_depth_m: 30.0 }
+        Self { min_speed_m_s: 0.02, min_radius_frac: 0.02, min_radial_px: 0.05, max_depth_m: 30.0, floor_height_m: 0.1 }
     }
 }
 

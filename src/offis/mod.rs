@@ -83,7 +83,11 @@ impl OffisParams {
                 nonneg(self.depth.min_radius_frac) && nonneg(self.depth.min_radial_px),
                 "and depth.min_radial_px must be ≥ 0",
             ),
-            ("depth.max_depth_m", pos(self.depth.max_depth_m), "must be a positive distance"),
+            (
+                "depth.max_depth_m",
+                pos(self.depth.max_depth_m) && nonneg(self.depth.floor_height_m),
+                "must be a positive distance (and depth.floor_height_m ≥ 0)",
+            ),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err((format!("offis.{field}"), problem.to_string())),
@@ -108,7 +112,7 @@ pub struct Attributes {
     /// §4.1–4.2.
     pub rough: [[u8; 4]; 4],
     pub fine: [[u8; 8]; 8],
-    /// §3.1, Fig. 6.
+    /// §3.1, Fig. 6, on the inliers that are not floor (when translating).
     pub zoom: Option<Zoom>,
     /// Valid vectors in, outliers removed (§2.3).
     pub valid: usize,
@@ -133,6 +137,8 @@ pub struct Offis {
     v: Vec<f64>,
     valid: Vec<bool>,
     inlier: Vec<bool>,
+    /// Inliers that are not floor: the blocks the obstacle zoom-in looks at.
+    candidate: Vec<bool>,
     located: Vec<Option<Located>>,
     scratch: Vec<f64>,
     scratch2: Vec<f64>,
@@ -211,7 +217,6 @@ impl Offis {
         let hplane_l3 = planes::hplane_l3(&q.l3, &p.plane);
         let rough = structure::rough_mask(&q.l2, &vplane_l2, &hplane_l2);
         let fine = structure::fine_mask(&q.l3, &vplane_l3, &hplane_l3, &rough);
-        let zoom = quadrants::zoom_in(&q);
 
         // Distances (§2.2): only while translating.
         let translating = odo.v.abs() >= p.depth.min_speed_m_s;
@@ -224,6 +229,16 @@ impl Offis {
                 _ => None,
             };
         }
+        // Fig. 6 zoom-in, on the blocks that are not floor: the floor's flow near the bottom
+        // corners is always the biggest in view, and the floor is not an obstacle. Without
+        // translation the floor cannot be told apart and every inlier takes part (paper-literal).
+        let floor_m = p.depth.floor_height_m;
+        let z_m = cam.mount_m[2];
+        self.candidate.resize(n, false);
+        for (i, keep) in self.candidate.iter_mut().enumerate() {
+            *keep = self.inlier[i] && !self.located[i].is_some_and(|l| l.up + z_m < floor_m);
+        }
+        let zoom = quadrants::zoom_in(&Quadrants::compute(grid, &self.u, &self.v, &self.candidate));
         let mut forward_l3 = [[None; 8]; 8];
         let mut range_l3 = [[None; 8]; 8];
         if foe.is_some() {
@@ -251,7 +266,7 @@ impl Offis {
                 let [r, c] = z.l3;
                 let (x, y) = cell_centre(flow, grid, [r, c]);
                 Obstacle {
-                    present: true,
+                    present: range_l3[r][c].is_none_or(|d| d <= features::RANGE_M),
                     distance_m: range_l3[r][c],
                     bearing_rad: Some(cam.bearing(x, y) - motion.yaw),
                     cell: Some(z.l3),

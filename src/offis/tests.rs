@@ -298,3 +298,22 @@ fn features_separate_the_four_shapes() {
     assert!(door.corner_angle_deg < 5.0 && door.line_resid < 0.01, "{door:?}");
     assert!(wall.gap_frac == 0.0, "{wall:?}");
 }
+
+#[test]
+fn the_floor_is_never_the_obstacle() {
+    // Level C310 0.4 m above the floor, a wall 4 m ahead and a box 1.8 m ahead on the right:
+    // the floor's flow at the bottom corners is the biggest, but the zoom-in lands on the box.
+    let c = Calibration::nominal_c310();
+    let scene = Scene {
+        rects: vec![Rect::floor(), Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.9, [-0.7, -0.2], [0.0, 0.8])],
+    };
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let pair = scene.flow(&c, 16, 16, vel, DT);
+    let mut offis = Offis::new(OffisParams::default());
+    let p = offis.step(&pair.field, vel, DT, &c).unwrap();
+    let [r, col] = p.obstacle.cell.unwrap();
+    let t = pair.truth[(2 * r) * 16 + 2 * col].unwrap();
+    assert!(t[2] + 0.4 > 0.1, "block on the box, not the floor: {t:?} cell {r},{col}");
+    assert!(p.obstacle.present && (p.obstacle.distance_m.unwrap() - 1.8).abs() < 0.3, "{:?}", p.obstacle);
+    assert!(p.obstacle.bearing_rad.unwrap() < 0.0);
+}
