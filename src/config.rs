@@ -4,6 +4,7 @@
 use crate::control::ControlLimits;
 use crate::flow::FlowParams;
 use crate::mofis::MofisParams;
+use crate::offis::OffisParams;
 use crate::pafsis::PafsisParams;
 use hal::v4l2::CameraConfig;
 use serde::{Deserialize, Serialize};
@@ -24,6 +25,7 @@ pub enum ConfigError {
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     pub flow: FlowParams,
+    pub offis: OffisParams,
     pub pafsis: PafsisParams,
     pub mofis: MofisParams,
     pub control: ControlLimits,
@@ -51,6 +53,8 @@ impl Config {
         self.camera
             .validate()
             .map_err(|e| ConfigError::Invalid { field: format!("camera.{}", e.field), problem: e.problem })
+        self.control.validate()?;
+        self.offis.check().map_err(|(field, problem)| ConfigError::Invalid { field, problem })
     }
 }
 
@@ -109,6 +113,10 @@ mod tests {
         std::fs::write(&p, "[flow]\nbogus = 1\n").unwrap();
         let e = Config::load(&p).unwrap_err().to_string();
         assert!(e.contains("bogus") && e.contains("c.toml"), "{e}");
+        std::fs::write(&p, "[offis.plane]\nrel = 1.5\n").unwrap();
+        assert!(Config::load(&p).unwrap_err().to_string().contains("offis.plane.rel"));
+        std::fs::write(&p, "[offis.tilt]\nk_tilt = 0.5\n").unwrap();
+        assert_eq!(Config::load(&p).unwrap().offis.tilt.k_tilt, 0.5);
     }
 
     #[test]

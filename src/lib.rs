@@ -7,6 +7,7 @@
 //! |---|---|---|
 //! | [`frames`] | reading images and frame folders (PNG/JPEG → 8-bit luma, `odometry.csv`) | |
 //! | [`flow`] | block-matching optical flow: parameters, the flow field, CPU and GPU engines | §2.2, §5 |
+//! | [`offis`] | OFFIS: quadrant attributes, structure masks, obstacle zoom-in, distances from flow | §2.3–§5 |
 //! | [`fuzzy`] | Mamdani fuzzy inference: TOML rule files, validation, compiled fast evaluation | §5 |
 //! | [`perception`] | the OFFIS output: TPO shape/distance, nearest obstacle, structure masks | §2.2 |
 //! | [`pafsis`] | topological map, global plan (mission → waypoints), local plan (landmarks + odometry → goal velocity/angle) | §2.2 |
@@ -26,6 +27,7 @@ pub mod flow;
 pub mod frames;
 pub mod fuzzy;
 pub mod mofis;
+pub mod offis;
 pub mod pafsis;
 pub mod logging;
 pub mod perception;

@@ -1,0 +1,319 @@
+//! OFFIS on closed-form flow fields: geometry exact to rounding, the paper's eq. (11) and
+//! eq. (12) masks from scenes of the kind the paper shows, other grid sizes, and errors.
+
+use super::geometry::{DepthParams, FrameMotion, PinholeCamera, locate};
+use super::synth::{Rect, Scene};
+use super::*;
+
+const DT: f64 = 0.1;
+
+/// The nominal C310 mounted 1 m above the floor, optionally pitched.
+fn calib(pitch: f64) -> Calibration {
+    let mut c = Calibration::nominal_c310();
+    c.mount.z_m = 1.0;
+    c.mount.pitch_rad = pitch;
+    c
+}
+
+const Z: [f64; 2] = [-10.0, 10.0];
+
+fn wall() -> Scene {
+    Scene { rects: vec![Rect::frontal(2.1, [-10.0, 10.0], Z)] }
+}
+
+/// Fig. 7: a wall 2 m ahead of the camera with a 1 m wide opening, a far wall behind it.
+fn door() -> Scene {
+    Scene {
+        rects: vec![
+            Rect::frontal(2.1, [0.5, 10.0], Z),
+            Rect::frontal(2.1, [-10.0, -0.5], Z),
+            Rect::frontal(8.0, [-10.0, 10.0], Z),
+        ],
+    }
+}
+
+/// Fig. 8: a 2 m wide corridor with a box against its left wall, low in the view.
+fn corridor_with_box() -> Scene {
+    Scene {
+        rects: vec![
+            Rect::side(1.0, [0.0, 60.0], Z),
+            Rect::side(-1.0, [0.0, 60.0], Z),
+            Rect::frontal(60.0, [-1.0, 1.0], Z),
+            Rect::frontal(2.15, [0.5, 1.0], [-10.0, 0.72]),
+        ],
+    }
+}
+
+fn run(scene: &Scene, c: &Calibration, rows: usize, cols: usize, vel: BodyVelocity) -> (Perception, Attributes) {
+    let pair = scene.flow(c, rows, cols, vel, DT);
+    let mut offis = Offis::new(OffisParams::default());
+    let p = offis.step(&pair.field, vel, DT, c).unwrap();
+    (p, offis.attributes().clone())
+}
+
+#[test]
+fn frontal_plane_depth_is_exact() {
+    // Camera at x = 0.1, wall at x = 2.1, driving 0.5 m/s for 0.1 s: 1.95 m ahead at frame B.
+    let c = calib(0.0);
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let pair = wall().flow(&c, 16, 16, vel, DT);
+    let cam = PinholeCamera::new(&c, 1280, 720);
+    let m = FrameMotion::from_odometry(&cam, vel, DT);
+    let foe = m.foe(&cam).unwrap();
+    assert!((foe[0] - cam.cx).abs() < 1e-9 && (foe[1] - cam.cy).abs() < 1e-9, "FOE at the principal point");
+    let mut n = 0;
+    for f in &pair.field.vectors {
+        let t = m.derotate(&cam, f.x as f64, f.y as f64, f.u as f64, f.v as f64).unwrap();
+        if let Some(l) = locate(&cam, &m, foe, &DepthParams::default(), [f.x as f64, f.y as f64], t) {
+            assert!((l.forward - 1.95).abs() < 1e-6, "{l:?}");
+            n += 1;
+        }
+    }
+    assert_eq!(n, 256, "every block is far enough from the FOE");
+}
+
+#[test]
+fn plane_plus_rotation_locates_every_point() {
+    // A turn of 0.3 rad/s while driving, camera off the turning axis, with and without pitch:
+    // every block's located point equals the ray-cast truth at frame B.
+    for pitch in [0.0, 0.15] {
+        let c = calib(pitch);
+        let vel = BodyVelocity::new(0.4, 0.3);
+        let scene = Scene {
+            rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()],
+        };
+        let pair = scene.flow(&c, 16, 16, vel, DT);
+        let cam = PinholeCamera::new(&c, 1280, 720);
+        let m = FrameMotion::from_odometry(&cam, vel, DT);
+        let foe = m.foe(&cam).unwrap();
+        let mut n = 0;
+        for (f, truth) in pair.field.vectors.iter().zip(&pair.truth) {
+            let t = m.derotate(&cam, f.x as f64, f.y as f64, f.u as f64, f.v as f64).unwrap();
+            if let Some(l) = locate(&cam, &m, foe, &DepthParams::default(), [f.x as f64, f.y as f64], t) {
+                let want = truth.unwrap();
+                let err =
+                    ((l.forward - want[0]).powi(2) + (l.left - want[1]).powi(2) + (l.up - want[2]).powi(2)).sqrt();
+                assert!(err < 1e-5 * want[0].abs().max(1.0), "pitch {pitch}: got {l:?}, want {want:?}");
+                n += 1;
+            }
+        }
+        assert!(n > 200, "pitch {pitch}: only {n} blocks located");
+    }
+}
+
+#[test]
+fn pure_rotation_derotates_to_zero() {
+    let c = calib(0.1);
+    let vel = BodyVelocity::new(0.0, 0.8);
+    let pair = wall().flow(&c, 16, 16, vel, DT);
+    let cam = PinholeCamera::new(&c, 1280, 720);
+    let m = FrameMotion::from_odometry(&cam, BodyVelocity::new(0.0, 0.8), DT);
+    // The camera sits 0.1 m ahead of the axis, so a pure turn also translates it a little
+    // (0.1·sin 0.08 ≈ 8 mm sideways); with the wall 2 m away the left-over flow is that parallax.
+    for f in &pair.field.vectors {
+        assert!(f.u > 30.0, "a left turn moves the image right: {f:?}");
+        let [u, v] = m.derotate(&cam, f.x as f64, f.y as f64, f.u as f64, f.v as f64).unwrap();
+        assert!(u.hypot(v) < 6.0, "{u} {v}");
+    }
+    let far = Scene::default().flow(&c, 16, 16, vel, DT);
+    for f in &far.field.vectors {
+        let [u, v] = m.derotate(&cam, f.x as f64, f.y as f64, f.u as f64, f.v as f64).unwrap();
+        assert!(u.hypot(v) < 1e-3, "points at infinity have no translational flow: {u} {v}");
+    }
+}
+
+#[test]
+fn eq_11_door_rough_mask() {
+    let ones_outside = [[1, 0, 0, 1]; 4];
+    for vel in [BodyVelocity::new(0.5, 0.0), BodyVelocity::new(0.5, 0.25)] {
+        let (p, a) = run(&door(), &calib(0.0), 16, 16, vel);
+        assert_eq!(p.rough, ones_outside, "{vel:?}: {a:#?}");
+    }
+}
+
+#[test]
+fn a_plain_wall_is_one_plane_in_every_quadrant() {
+    let (p, a) = run(&wall(), &calib(0.0), 16, 16, BodyVelocity::new(0.5, 0.0));
+    assert_eq!(p.rough, [[1; 4]; 4]);
+    assert_eq!(a.vplane_l2, [[1; 4]; 2]);
+    assert_eq!(a.hplane_l2, [[1; 2]; 4]);
+    // a frontal plane has no tilt: V depends on the row only (eq. 8 ratio 1)
+    for row in a.tilt_l3 {
+        for t in row {
+            assert!((t - TiltParams::default().k_tilt).abs() < 1e-3, "{t}");
+        }
+    }
+    // TPO distance: the wall at frame B, 2.1 − 0.1 − 0.05 m from the camera.
+    assert!((p.tpo.distance_m.unwrap() - 1.95).abs() < 1e-3, "{:?}", p.tpo);
+}
+
+#[test]
+fn eq_12_corridor_with_obstacle_fine_mask() {
+    let mut want = [[1, 0, 0, 0, 0, 0, 0, 1]; 8];
+    want[6][1] = 1;
+    want[7][1] = 1;
+    for vel in [BodyVelocity::new(0.5, 0.0), BodyVelocity::new(0.5, -0.2)] {
+        let (p, a) = run(&corridor_with_box(), &calib(0.0), 16, 16, vel);
+        assert_eq!(p.fine, want, "{vel:?}: rough {:?} {a:#?}", p.rough);
+        assert_eq!(p.rough, [[1, 0, 0, 1]; 4]);
+    }
+}
+
+#[test]
+fn obstacle_zoom_distance_and_bearing() {
+    // A wall 4 m ahead and a box face 1.5 m ahead, right of centre and low: the zoom-in lands in
+    // the box, and its distance and bearing are the ray-cast truth.
+    let c = calib(0.0);
+    let scene =
+        Scene { rects: vec![Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.6, [-0.6, -0.2], [-1.0, 0.8])] };
+    let vel = BodyVelocity::new(0.5, 0.1);
+    let pair = scene.flow(&c, 16, 16, vel, DT);
+    let mut offis = Offis::new(OffisParams::default());
+    let p = offis.step(&pair.field, vel, DT, &c).unwrap();
+    let [r, col] = p.obstacle.cell.unwrap();
+    assert!(p.obstacle.present);
+    // the four blocks of that cell: truth range median and centre bearing at frame B
+    let mut ranges: Vec<f64> =
+        (0..4).map(|k| pair.truth[(2 * r + k / 2) * 16 + 2 * col + k % 2].unwrap()).map(|t| t[0].hypot(t[1])).collect();
+    ranges.sort_by(f64::total_cmp);
+    let want_range = 0.5 * (ranges[1] + ranges[2]);
+    assert!(want_range < 1.7, "the cell is on the box: {want_range} (cell {r},{col})");
+    assert!((p.obstacle.distance_m.unwrap() - want_range).abs() < 2e-3, "{:?} vs {want_range}", p.obstacle);
+    let cx = (0..4).map(|k| pair.field.at(2 * r + k / 2, 2 * col + k % 2).x as f64).sum::<f64>() / 4.0;
+    let want_bearing = -((cx - 639.5) / 1272.0).atan() - 0.1 * DT;
+    assert!((p.obstacle.bearing_rad.unwrap() - want_bearing).abs() < 1e-9);
+    assert!(want_bearing < 0.0, "the box is right of the heading");
+}
+
+#[test]
+fn no_distance_when_not_translating() {
+    let c = calib(0.0);
+    for vel in [BodyVelocity::new(0.0, 0.0), BodyVelocity::new(0.01, 0.5)] {
+        let (p, a) = run(&door(), &c, 16, 16, vel);
+        assert_eq!(p.tpo.distance_m, None);
+        assert_eq!(p.obstacle.distance_m, None);
+        assert!(a.foe.is_none() && a.range_l3.iter().flatten().all(Option::is_none));
+    }
+}
+
+#[test]
+fn other_grids_give_the_same_masks() {
+    for (rows, cols) in [(8, 8), (24, 24), (16, 32)] {
+        let (p, _) = run(&door(), &calib(0.0), rows, cols, BodyVelocity::new(0.5, 0.0));
+        assert_eq!(p.rough, [[1, 0, 0, 1]; 4], "{rows}x{cols}");
+        let (p, _) = run(&wall(), &calib(0.0), rows, cols, BodyVelocity::new(0.5, 0.0));
+        assert_eq!(p.rough, [[1; 4]; 4], "{rows}x{cols}");
+        assert!((p.tpo.distance_m.unwrap() - 1.95).abs() < 1e-3, "{rows}x{cols}");
+    }
+}
+
+#[test]
+fn calibration_is_scaled_to_the_flow_size() {
+    // The same scene seen by a 640×360 stream of the camera calibrated at 1280×720.
+    let c = calib(0.0);
+    let small = {
+        let mut s = c.scaled_to(640, 360);
+        s.model = c.model.clone();
+        s
+    };
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let pair = wall().flow(&small, 16, 16, vel, DT);
+    let p = Offis::new(OffisParams::default()).step(&pair.field, vel, DT, &c).unwrap();
+    assert!((p.tpo.distance_m.unwrap() - 1.95).abs() < 1e-3);
+}
+
+#[test]
+fn invalid_vectors_and_bad_inputs() {
+    let c = calib(0.0);
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let mut pair = wall().flow(&c, 16, 16, vel, DT);
+    for f in pair.field.vectors.iter_mut().step_by(3) {
+        f.validity = crate::flow::Validity::Textureless;
+        f.u = 1e6;
+    }
+    let mut offis = Offis::new(OffisParams::default());
+    let p = offis.step(&pair.field, vel, DT, &c).unwrap();
+    assert_eq!(offis.attributes().valid, 256 - 86);
+    assert_eq!(p.rough, [[1; 4]; 4], "invalid vectors do not enter the averages");
+    assert!(matches!(offis.step(&pair.field, vel, 0.0, &c), Err(OffisError::Dt(_))));
+    assert!(matches!(
+        offis.step(&pair.field, BodyVelocity::new(f64::NAN, 0.0), DT, &c),
+        Err(OffisError::Odometry { .. })
+    ));
+    let mut bad = pair.field.clone();
+    bad.rows = 12;
+    bad.cols = 12;
+    let e = offis.step(&bad, vel, DT, &c).unwrap_err();
+    assert!(e.to_string().contains("multiples of 8"), "{e}");
+    bad.rows = 16;
+    bad.cols = 8;
+    assert!(matches!(offis.step(&bad, vel, DT, &c), Err(OffisError::Size { .. })));
+}
+
+#[test]
+fn the_step_is_deterministic_and_reuses_its_buffers() {
+    let c = calib(0.0);
+    let vel = BodyVelocity::new(0.5, 0.1);
+    let a = corridor_with_box().flow(&c, 16, 16, vel, DT);
+    let b = door().flow(&c, 24, 24, vel, DT);
+    let mut offis = Offis::new(OffisParams::default());
+    let first = offis.step(&a.field, vel, DT, &c).unwrap();
+    offis.step(&b.field, vel, DT, &c).unwrap();
+    assert_eq!(offis.step(&a.field, vel, DT, &c).unwrap(), first);
+}
+
+fn features(scene: &Scene) -> features::Features {
+    let c = Calibration::nominal_c310();
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let pair = scene.flow(&c, 16, 16, vel, DT);
+    let mut offis = Offis::new(OffisParams::default());
+    offis.step(&pair.field, vel, DT, &c).unwrap();
+    offis.attributes().features
+}
+
+#[test]
+fn features_separate_the_four_shapes() {
+    let floor = Rect::floor();
+    let wall = features(&Scene { rects: vec![Rect::frontal(2.6, [-10.0, 10.0], Z), floor] });
+    assert!(wall.line_resid < 0.01 && wall.corner_angle_deg < 5.0, "{wall:?}");
+    assert!((wall.open_ahead_m - 2.45).abs() < 0.01 && wall.near_frac == 1.0, "{wall:?}");
+    // a concave corner: two walls at ±45° meeting 3 m ahead
+    let corner = features(&Scene {
+        rects: vec![
+            Rect::vertical(3.1, 0.0, std::f64::consts::FRAC_PI_4, [-10.0, 0.0, -10.0], [10.0, 10.0, 10.0]),
+            Rect::vertical(3.1, 0.0, -std::f64::consts::FRAC_PI_4, [-10.0, -10.0, -10.0], [10.0, 0.0, 10.0]),
+            floor,
+        ],
+    });
+    assert!(corner.corner_angle_deg > 70.0 && corner.line_resid > 0.05, "{corner:?}");
+    let corridor =
+        features(&Scene { rects: vec![Rect::side(1.0, [0.0, 60.0], Z), Rect::side(-1.0, [0.0, 60.0], Z), floor] });
+    assert!(corridor.side_angle_deg < 5.0 && corridor.open_ahead_m >= 7.9, "{corridor:?}");
+    let door = features(&Scene {
+        rects: vec![Rect::frontal(2.6, [0.5, 10.0], Z), Rect::frontal(2.6, [-10.0, -0.5], Z), floor],
+    });
+    assert!(door.gap_frac > 0.25 && door.open_ahead_m >= 7.9 && door.side_angle_deg > 80.0, "{door:?}");
+    // the opening alone does not make a door (a corridor or a concave corner is open behind the
+    // chord too): its flanks are one plane, which neither a corner nor a corridor has
+    assert!(door.corner_angle_deg < 5.0 && door.line_resid < 0.01, "{door:?}");
+    assert!(wall.gap_frac == 0.0, "{wall:?}");
+}
+
+#[test]
+fn the_floor_is_never_the_obstacle() {
+    // Level C310 0.4 m above the floor, a wall 4 m ahead and a box 1.8 m ahead on the right:
+    // the floor's flow at the bottom corners is the biggest, but the zoom-in lands on the box.
+    let c = Calibration::nominal_c310();
+    let scene = Scene {
+        rects: vec![Rect::floor(), Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.9, [-0.7, -0.2], [0.0, 0.8])],
+    };
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let pair = scene.flow(&c, 16, 16, vel, DT);
+    let mut offis = Offis::new(OffisParams::default());
+    let p = offis.step(&pair.field, vel, DT, &c).unwrap();
+    let [r, col] = p.obstacle.cell.unwrap();
+    let t = pair.truth[(2 * r) * 16 + 2 * col].unwrap();
+    assert!(t[2] + 0.4 > 0.1, "block on the box, not the floor: {t:?} cell {r},{col}");
+    assert!(p.obstacle.present && (p.obstacle.distance_m.unwrap() - 1.8).abs() < 0.3, "{:?}", p.obstacle);
+    assert!(p.obstacle.bearing_rad.unwrap() < 0.0);
+}
