@@ -10,10 +10,20 @@
 //! | [`camera`] | camera pose from robot pose + mount, optical ↔ world transforms, [`RenderedCamera`] (`hal::Camera`) |
 //! | [`truth`] | ground truth: TPO class by DESIGN.md geometry ([`truth::tpo`] thresholds), nearest obstacle, exact motion field |
 //! | [`scene`] | canonical scenes built in code (wall, corner, door, corridor, empty) for labelled benchmarks |
+//! | [`pty`] | raw-mode pseudo-terminals that stand in for serial ports |
+//! | [`faults`] | seeded link faults (dropped, corrupted, delayed bytes, disconnects) and the simulation RNG |
+//! | [`kinematics`] | differential-drive kinematics: limits, exact arcs, noisy encoders, collision hook |
+//! | [`sim_base`] | the simulated FNP/1 base and the pty server ([`sim_base::SimServer`]) for any simulated device |
+//! | [`sim_kobuki`] | the simulated Kobuki (TurtleBot 2) base |
 
 pub mod camera;
+pub mod faults;
+pub mod kinematics;
+pub mod pty;
 pub mod render;
 pub mod scene;
+pub mod sim_base;
+pub mod sim_kobuki;
 pub mod texture;
 pub mod truth;
 pub mod world;
@@ -22,14 +32,3 @@ pub use camera::{CameraPose, Pacing, RenderedCamera};
 pub use render::{DepthMap, Effects, Renderer};
 pub use truth::{FrameTruth, GroundTruth, MotionField, TpoClass};
 pub use world::{Pose, World, WorldError};
-//! | [`pty`] | raw-mode pseudo-terminals that stand in for serial ports |
-//! | [`faults`] | seeded link faults (dropped, corrupted, delayed bytes, disconnects) and the simulation RNG |
-//! | [`kinematics`] | differential-drive kinematics: limits, exact arcs, noisy encoders, collision hook |
-//! | [`sim_base`] | the simulated FNP/1 base and the pty server ([`sim_base::SimServer`]) for any simulated device |
-//! | [`sim_kobuki`] | the simulated Kobuki (TurtleBot 2) base |
-
-pub mod faults;
-pub mod kinematics;
-pub mod pty;
-pub mod sim_base;
-pub mod sim_kobuki;
