@@ -389,3 +389,6 @@ impl FuzzySystem {
         self.evaluate(&values)
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,53 @@
+//! Speed of one fuzzy evaluation (fuzzify, rules, aggregation, centroid) on the shipped
+//! example systems. `cargo bench --bench fuzzy`.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use flownav::fuzzy::FuzzySystem;
+use std::hint::black_box;
+
+fn load(file: &str) -> String {
+    std::fs::read_to_string(format!("{}/rules/examples/{file}", env!("CARGO_MANIFEST_DIR"))).expect("example file")
+}
+
+fn bench(c: &mut Criterion) {
+    let reference = load("reference.toml");
+    let variants = [
+        ("reference/exact", reference.clone()),
+        ("reference/sampled101", reference.replace("centroid = \"exact\"", "centroid = \"sampled\"\nresolution = 101")),
+        (
+            "reference/sampled1001",
+            reference.replace("centroid = \"exact\"", "centroid = \"sampled\"\nresolution = 1001"),
+        ),
+        ("avoid", load("avoid.toml")),
+    ];
+    for (name, text) in variants {
+        let sys = FuzzySystem::from_toml_str(&text, name).expect("valid system");
+        let n = sys.inputs().len();
+        // A fixed sweep of inputs across each universe, so every rule and branch is exercised.
+        let points: Vec<Vec<f64>> = (0..64)
+            .map(|k| {
+                sys.inputs()
+                    .iter()
+                    .enumerate()
+                    .map(|(i, v)| v.min + (v.max - v.min) * (((k * (7 + 3 * i)) % 64) as f64 / 63.0))
+                    .collect()
+            })
+            .collect();
+        assert!(points.iter().all(|p| p.len() == n));
+        let mut ev = sys.evaluation();
+        let mut k = 0;
+        c.bench_function(&format!("fuzzy/{name}"), |b| {
+            b.iter(|| {
+                k = (k + 1) & 63;
+                sys.evaluate_into(black_box(&points[k]), &mut ev).expect("evaluates");
+                black_box(ev.values()[0])
+            })
+        });
+    }
+    c.bench_function("fuzzy/load_reference", |b| {
+        b.iter(|| FuzzySystem::from_toml_str(black_box(&reference), "reference.toml").expect("valid"))
+    });
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
