@@ -5,12 +5,8 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use flownav::fuzzy::FuzzySystem;
 use std::hint::black_box;
 
-fn load(file: &str) -> String {
-    std::fs::read_to_string(format!("{}/rules/examples/{file}", env!("CARGO_MANIFEST_DIR"))).expect("example file")
-}
-
 fn bench(c: &mut Criterion) {
-    let reference = load("reference.toml");
+    let reference = include_str!("../rules/examples/reference.toml").to_string();
     let variants = [
         ("reference/exact", reference.clone()),
         ("reference/sampled101", reference.replace("centroid = \"exact\"", "centroid = \"sampled\"\nresolution = 101")),
@@ -18,7 +14,7 @@ fn bench(c: &mut Criterion) {
             "reference/sampled1001",
             reference.replace("centroid = \"exact\"", "centroid = \"sampled\"\nresolution = 1001"),
         ),
-        ("avoid", load("avoid.toml")),
+        ("avoid", include_str!("../rules/examples/avoid.toml").to_string()),
     ];
     for (name, text) in variants {
         let sys = FuzzySystem::from_toml_str(&text, name).expect("valid system");

@@ -258,3 +258,30 @@ fn the_avoidance_example_turns_towards_the_free_side() {
     let wall_left = sys.evaluate_named(&[("front_m", 4.0), ("left_m", 0.2), ("right_m", 3.0)]).unwrap();
     assert!(wall_left.value(omega) < -0.1);
 }
+
+#[test]
+fn terms_may_be_written_as_a_sub_table() {
+    let text = r#"
+[[input]]
+name = "x"
+range = [0, 1]
+[input.terms]
+far = { tri = [0, 1, 1] }
+near = { tri = [0, 0, 1] }
+
+[[output]]
+name = "z"
+range = [0, 1]
+[output.terms]
+b = { trap = [0, 0.5, 1, 1] }
+a = { tri = [0, 0, 0.5] }
+
+[[rule]]
+if = "x is near"
+then = "z is a"
+"#;
+    let sys = FuzzySystem::from_toml_str(text, "sub.toml").unwrap();
+    assert_eq!(sys.name(), "sub.toml");
+    assert_eq!(sys.inputs()[0].terms[0].name, "far");
+    assert_eq!(sys.output_term("z", "a").unwrap().term, 1);
+}
