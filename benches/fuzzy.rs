@@ -1,9 +1,29 @@
 //! Speed of one fuzzy evaluation (fuzzify, rules, aggregation, centroid) on the shipped
 //! example systems. `cargo bench --bench fuzzy`.
+//!
+//! Besides criterion's wall-clock times, it prints the on-CPU time per evaluation (from
+//! `/proc/thread-self/schedstat`, Linux), which stays meaningful on a loaded machine where
+//! wall-clock times include waiting for a core.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use flownav::fuzzy::FuzzySystem;
 use std::hint::black_box;
+
+/// Nanoseconds this thread has run on a CPU, or `None` off Linux.
+fn thread_cpu_ns() -> Option<u64> {
+    std::fs::read_to_string("/proc/thread-self/schedstat").ok()?.split_whitespace().next()?.parse().ok()
+}
+
+fn cpu_ns_per_eval(sys: &FuzzySystem, points: &[Vec<f64>]) -> Option<f64> {
+    const N: usize = 1_000_000;
+    let mut ev = sys.evaluation();
+    let start = thread_cpu_ns()?;
+    for k in 0..N {
+        sys.evaluate_into(black_box(&points[k & 63]), &mut ev).expect("evaluates");
+        black_box(ev.values()[0]);
+    }
+    Some((thread_cpu_ns()? - start) as f64 / N as f64)
+}
 
 fn bench(c: &mut Criterion) {
     let reference = include_str!("../rules/examples/reference.toml").to_string();
@@ -31,6 +51,9 @@ fn bench(c: &mut Criterion) {
             .collect();
         assert!(points.iter().all(|p| p.len() == n));
         let mut ev = sys.evaluation();
+        if let Some(ns) = cpu_ns_per_eval(&sys, &points) {
+            println!("fuzzy/{name}: {ns:.0} ns on-CPU per evaluation");
+        }
         let mut k = 0;
         c.bench_function(&format!("fuzzy/{name}"), |b| {
             b.iter(|| {
