@@ -54,7 +54,7 @@ pub enum Problem {
     Duplicate { what: &'static str, name: String },
     #[error("range [{min}, {max}] is empty or not finite; write range = [min, max] with min < max")]
     BadRange { min: f64, max: f64 },
-    #[error("variable '{variable}' has no terms; add e.g. terms = {{ low = {{ tri = [..] }} }}")]
+    #[error("'{variable}' has no terms; add e.g. terms = {{ low = {{ tri = [..] }} }}")]
     NoTerms { variable: String },
     #[error("points {points:?} are not in order; {shape} needs {order}")]
     NotOrdered { shape: &'static str, points: Vec<f64>, order: &'static str },
@@ -74,7 +74,7 @@ pub enum Problem {
         "centroid = \"exact\" needs triangular/trapezoidal terms, but term '{term}' is not; use centroid = \"sampled\""
     )]
     ExactNeedsPiecewiseLinear { term: String },
-    #[error("output '{output}' is not the consequent of any rule; it would always be its default")]
+    #[error("no rule concludes '{output}'; it would always be its default")]
     UnusedOutput { output: String },
     #[error("parse error at character {position} of the `{field}` text: {message}\n    {text}\n    {caret}^")]
     Parse { field: &'static str, position: usize, message: String, text: String, caret: String },

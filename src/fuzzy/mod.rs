@@ -301,7 +301,10 @@ impl FuzzySystem {
             input_offsets: self.input_offsets.clone(),
             output_offsets: self.output_offsets.clone(),
             stack: Vec::with_capacity(self.stack_depth),
-            scratch: Scratch::with_terms(self.max_output_terms),
+            scratch: Scratch::new(
+                self.max_output_terms,
+                self.outputs.iter().map(|o| o.samples.len()).max().unwrap_or(0),
+            ),
         }
     }
 
@@ -345,7 +348,7 @@ impl FuzzySystem {
             let var = &out.variable;
             let (area, moment) = match out.centroid {
                 Centroid::Exact => centroid::exact_moments(&out.shapes, cuts, var.min, var.max, &mut ev.scratch),
-                Centroid::Sampled { .. } => centroid::sampled_moments(&out.samples, &out.table, cuts),
+                Centroid::Sampled { .. } => centroid::sampled_moments(&out.samples, &out.table, cuts, &mut ev.scratch),
             };
             let fired = area > 0.0 && moment.is_finite();
             ev.fired[o] = fired;
@@ -389,3 +392,6 @@ impl FuzzySystem {
         self.evaluate(&values)
     }
 }
+
+#[cfg(test)]
+mod tests;
