@@ -2,7 +2,7 @@
 //! inserted, as for a UVC frame) and YUYV → luma. Budget (DESIGN.md): MJPEG ≤ 4 ms per frame.
 //!
 //! `cargo bench --bench decode` reports two groups: `decode_1280x720` in wall-clock time, and
-//! `decode_1280x720_cpu` in the benchmark thread's CPU time (`/proc/thread-self/schedstat`), which
+//! `decode_1280x720_cpu` in the benchmark thread's CPU time (`CLOCK_THREAD_CPUTIME_ID`), which
 //! stays meaningful on a loaded shared machine where wall-clock time includes waiting for a core.
 
 use criterion::measurement::{Measurement, ValueFormatter, WallTime};
@@ -57,10 +57,13 @@ fn uvc_mjpeg(pixels: &[u8], colour: image::ExtendedColorType) -> Vec<u8> {
     out
 }
 
-/// CPU time of the calling thread, ns, from the scheduler's own accounting.
+/// CPU time of the calling thread, ns.
 fn thread_cpu_ns() -> u64 {
-    let stat = std::fs::read_to_string("/proc/thread-self/schedstat").expect("Linux /proc/thread-self/schedstat");
-    stat.split_whitespace().next().and_then(|v| v.parse().ok()).expect("schedstat starts with run time in ns")
+    let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+    // SAFETY: `ts` is a valid, writable timespec.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    assert_eq!(rc, 0, "CLOCK_THREAD_CPUTIME_ID is available on Linux");
+    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
 /// Criterion measurement in thread CPU time, formatted like wall-clock time.
