@@ -7,6 +7,8 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
+pub mod sim_base;
+
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
 pub struct Cli {
@@ -49,11 +51,16 @@ impl Common {
 }
 
 #[derive(Debug, Subcommand)]
-pub enum Command {}
+pub enum Command {
+    /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
+    SimBase(sim_base::Args),
+}
 
 /// Runs one parsed command line.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
-    match cli.command {}
+    match cli.command {
+        Command::SimBase(args) => sim_base::run(args, &cli.common),
+    }
 }
 
 /// Log to stderr; `RUST_LOG` wins over `-v`.
