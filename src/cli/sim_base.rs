@@ -36,7 +36,8 @@ pub struct Args {
 }
 
 pub fn run(args: Args, _common: &Common) -> anyhow::Result<()> {
-    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().context("starting the tokio runtime")?;
+    let rt =
+        tokio::runtime::Builder::new_current_thread().enable_all().build().context("starting the tokio runtime")?;
     rt.block_on(serve(args))
 }
 
