@@ -34,7 +34,7 @@ use tokio::time::{Instant, MissedTickBehavior};
 pub const WHEEL_BASE_M: f64 = 0.23;
 pub const WHEEL_RADIUS_M: f64 = 0.035;
 /// Wheel rotation per encoder tick, rad (kobuki_core's `tick_to_rad`).
-pub const TICK_TO_RAD: f64 = 0.002_436_916_871_363_930_2;
+pub const TICK_TO_RAD: f64 = 0.002_436_916_871_363_93;
 /// Encoder ticks per wheel revolution (2578.33).
 pub const TICKS_PER_REV: f64 = std::f64::consts::TAU / TICK_TO_RAD;
 /// Encoder ticks per metre of wheel travel.
