@@ -3,7 +3,7 @@
 //!
 //! Like the real firmware it has no command watchdog: it drives at the last Base Control command
 //! until told otherwise, which is what the host-side watchdog of `hal::kobuki` is tested against.
-//! Its drive train uses the Kobuki's geometry (wheel base 0.230 m, 11724.4 ticks/m); encoders
+//! Its drive train uses the Kobuki's geometry (wheel base 0.230 m, 11724.41 ticks/m); encoders
 //! and the millisecond timestamp are 16-bit and wrap as on the robot. Cliff and wheel-drop
 //! sensors can be set by a test; the bumper comes from the collision hook.
 

@@ -11,6 +11,7 @@ pub mod flow;
 pub mod render;
 pub mod devices;
 pub mod log;
+pub mod sim_base;
 
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
@@ -63,6 +64,8 @@ pub enum Command {
     Devices(devices::Args),
     /// Inspect MCAP run logs (`log info LOG`).
     Log(log::Args),
+    /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
+    SimBase(sim_base::Args),
 }
 
 /// Runs one parsed command line.
@@ -72,6 +75,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(args) => render::run(args, &cli.common),
         Command::Devices(args) => devices::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
+        Command::SimBase(args) => sim_base::run(args, &cli.common),
     }
 }
 
