@@ -199,6 +199,12 @@ impl LogHandle {
     pub fn drops(&self) -> LoggerStats {
         self.shared.stats()
     }
+
+    /// Messages queued and not yet written: images, data, critical.
+    pub fn waiting(&self) -> [usize; 3] {
+        let n = |c: usize| self.shared.pending[c].load(Ordering::Acquire);
+        [n(IMAGES), n(DATA), n(CRITICAL)]
+    }
 }
 
 /// What a closed logger wrote.
