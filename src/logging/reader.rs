@@ -296,10 +296,9 @@ impl LogReader {
     /// Opens the parts of a split log, read one after the other in the given order.
     pub fn open_parts(paths: impl IntoIterator<Item = PathBuf>) -> Result<Self, LogError> {
         let mut pending_files: VecDeque<PathBuf> = paths.into_iter().collect();
-        let first = pending_files.pop_front().ok_or_else(|| LogError::Option {
-            name: "log files",
-            problem: "must name at least one file".into(),
-        })?;
+        let first = pending_files
+            .pop_front()
+            .ok_or_else(|| LogError::Option { name: "log files", problem: "must name at least one file".into() })?;
         Ok(Self {
             pending_files,
             scan: Some(Scan::open(&first)?),
@@ -343,8 +342,12 @@ impl LogReader {
                 }
                 Some(Scanned::Message { channel, sequence, log_time, data }) => {
                     let path = scan.path().to_path_buf();
-                    let event = decode(&channel, &data)
-                        .map_err(|message| LogError::Decode { path, topic: channel.topic.clone(), log_time_ns: log_time, message })?;
+                    let event = decode(&channel, &data).map_err(|message| LogError::Decode {
+                        path,
+                        topic: channel.topic.clone(),
+                        log_time_ns: log_time,
+                        message,
+                    })?;
                     let entry = LogEntry {
                         t_ns: log_time.saturating_sub(self.offset_ns),
                         log_time_ns: log_time,
@@ -440,11 +443,7 @@ fn decode(channel: &ChannelInfo, data: &[u8]) -> Result<LogEvent, String> {
             let tf: FrameTransform = parse(data)?;
             if tf.parent_frame_id == FRAME_ODOM && tf.child_frame_id == FRAME_BASE {
                 let q = tf.rotation;
-                LogEvent::Pose(Pose2D {
-                    x_m: tf.translation.x,
-                    y_m: tf.translation.y,
-                    theta_rad: 2.0 * q.z.atan2(q.w),
-                })
+                LogEvent::Pose(Pose2D { x_m: tf.translation.x, y_m: tf.translation.y, theta_rad: 2.0 * q.z.atan2(q.w) })
             } else {
                 LogEvent::Other
             }
