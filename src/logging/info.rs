@@ -49,8 +49,7 @@ pub struct LogInfo {
 impl LogInfo {
     /// Reads the whole file once.
     pub fn read(path: &Path) -> Result<Self, LogError> {
-        let bytes =
-            std::fs::metadata(path).map_err(|source| LogError::Read { path: path.to_path_buf(), source })?.len();
+        let bytes = std::fs::metadata(path).map_err(|error| LogError::Read { path: path.to_path_buf(), error })?.len();
         let mut scan = Scan::open(path)?;
         let mut per_channel: BTreeMap<u16, TopicInfo> = BTreeMap::new();
         let mut last_seq: BTreeMap<u16, u32> = BTreeMap::new();

@@ -4,7 +4,7 @@
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BinaryHeap, HashMap, VecDeque};
 use std::fs::File;
-use std::io::Read;
+use std::io::{Read, Seek};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -54,7 +54,14 @@ pub(crate) struct Scan {
 
 impl Scan {
     pub fn open(path: &Path) -> Result<Self, LogError> {
-        let file = File::open(path).map_err(|source| LogError::Read { path: path.to_path_buf(), source })?;
+        let mut file = File::open(path).map_err(|error| LogError::Read { path: path.to_path_buf(), error })?;
+        let mut magic = [0u8; 8];
+        let n = file.read(&mut magic).map_err(|error| LogError::Read { path: path.to_path_buf(), error })?;
+        if magic[..n] != mcap::MAGIC[..n] || n < mcap::MAGIC.len() {
+            let message = "it does not start with the MCAP magic bytes (not an MCAP file, or empty)".to_string();
+            return Err(LogError::NotMcap { path: path.to_path_buf(), message });
+        }
+        file.rewind().map_err(|error| LogError::Read { path: path.to_path_buf(), error })?;
         let len = file.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
         // A chunk cut off by a crash still has its placeholder length (2^64 - 1): the limit turns
         // that into an error instead of an attempt to buffer it. Records inside chunks may be
@@ -106,7 +113,7 @@ impl Scan {
                 LinearReadEvent::ReadRequest(need) => {
                     let n = match self.file.read(self.reader.insert(need)) {
                         Ok(n) => n,
-                        Err(source) => return Err(LogError::Read { path: self.path.clone(), source }),
+                        Err(error) => return Err(LogError::Read { path: self.path.clone(), error }),
                     };
                     self.reader.notify_read(n);
                     continue;

@@ -240,7 +240,7 @@ impl LogWriter {
     /// overwrite; `-p001`, `-p002`, ... parts when splitting).
     pub fn create(dir: &Path, options: LogOptions) -> Result<Self, LogError> {
         options.validate()?;
-        std::fs::create_dir_all(dir).map_err(|source| LogError::CreateDir { path: dir.to_path_buf(), source })?;
+        std::fs::create_dir_all(dir).map_err(|error| LogError::CreateDir { path: dir.to_path_buf(), error })?;
         let base = default_file_name(std::time::SystemTime::now(), &options.kind);
         let split = options.split_bytes.is_some();
         for attempt in 1..1000u32 {
