@@ -56,13 +56,9 @@ pub enum Images {
 pub fn run(args: Args, _common: &Common) -> anyhow::Result<()> {
     match args.command {
         LogCommand::Info { log, json } => {
-            let info = LogInfo::read(&log).with_context(|| format!("reading {}", log.display()))?;
-            if json {
-                println!("{}", info_json(&info));
-            } else {
-                print!("{}", info.render());
-            }
-            Ok(())
+            let info = LogInfo::read(&log)?;
+            let text = if json { format!("{}\n", info_json(&info)) } else { info.render() };
+            print_stdout(&text)
         }
         LogCommand::Sample { out, frames, images, log_split_mb } => {
             let images = match images {
@@ -74,11 +70,18 @@ pub fn run(args: Args, _common: &Common) -> anyhow::Result<()> {
                 options = options.split_mb(mb);
             }
             let summary = sample::write_sample(&out, frames, images, options)?;
-            for f in &summary.files {
-                println!("{}", f.display());
-            }
-            Ok(())
+            let files: String = summary.files.iter().map(|f| format!("{}\n", f.display())).collect();
+            print_stdout(&files)
         }
+    }
+}
+
+/// Prints to stdout; a closed pipe (`| head`) ends the output quietly.
+fn print_stdout(text: &str) -> anyhow::Result<()> {
+    use std::io::Write;
+    match std::io::stdout().lock().write_all(text.as_bytes()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e).context("writing to stdout"),
+        _ => Ok(()),
     }
 }
 

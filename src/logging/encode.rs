@@ -9,9 +9,9 @@ use serde_json::Value;
 
 use super::base64;
 use super::foxglove::{
-    CameraCalibration, Color, CubePrimitive, CylinderPrimitive, Duration, FrameTransform, ImageAnnotations, KeyValuePair,
-    Log, Point2, PointsAnnotation, Pose, Quaternion, SceneEntity, SceneEntityDeletion, SceneUpdate, TextAnnotation,
-    Time, Vector3, points_type,
+    CameraCalibration, Color, CubePrimitive, CylinderPrimitive, Duration, FrameTransform, ImageAnnotations,
+    KeyValuePair, Log, Point2, PointsAnnotation, Pose, Quaternion, SceneEntity, SceneEntityDeletion, SceneUpdate,
+    TextAnnotation, Time, Vector3, points_type,
 };
 use super::payload::{GoalLog, LogLevel, PerceptionLog, Pose2D, SetpointLog, WorldGeometry};
 use super::{FRAME_BASE, FRAME_CAMERA, FRAME_ODOM};
@@ -165,7 +165,16 @@ pub fn flow_annotations(log_time_ns: u64, field: &FlowField, perception: Option<
             for r in 0..n {
                 for c in 0..n {
                     if mask(r, c) {
-                        annotations.points.push(rectangle(t, c as f64 * cw, r as f64 * ch, cw, ch, outline, fill, thickness));
+                        annotations.points.push(rectangle(
+                            t,
+                            c as f64 * cw,
+                            r as f64 * ch,
+                            cw,
+                            ch,
+                            outline,
+                            fill,
+                            thickness,
+                        ));
                     }
                 }
             }
@@ -291,7 +300,10 @@ pub fn world(log_time_ns: u64, world: &WorldGeometry) -> Vec<u8> {
         e.metadata.push(KeyValuePair { key: "kind".into(), value: "obstacle".into() });
         entities.push(e);
     }
-    to_json(&SceneUpdate { deletions: vec![SceneEntityDeletion { timestamp: t, kind: 1, id: String::new() }], entities })
+    to_json(&SceneUpdate {
+        deletions: vec![SceneEntityDeletion { timestamp: t, kind: 1, id: String::new() }],
+        entities,
+    })
 }
 
 /// `/log`.
@@ -340,7 +352,9 @@ mod tests {
         pitched.mount.pitch_rad = 0.3;
         let tf: FrameTransform = serde_json::from_slice(&camera_mount_transform(0, &pitched)).unwrap();
         let axis = tf.rotation.rotate([0.0, 0.0, 1.0]);
-        assert!((axis[0] - 0.3f64.cos()).abs() < 1e-12 && axis[1].abs() < 1e-12 && (axis[2] + 0.3f64.sin()).abs() < 1e-12);
+        assert!(
+            (axis[0] - 0.3f64.cos()).abs() < 1e-12 && axis[1].abs() < 1e-12 && (axis[2] + 0.3f64.sin()).abs() < 1e-12
+        );
         assert_eq!((tf.translation.x, tf.translation.z), (0.10, 0.40));
     }
 

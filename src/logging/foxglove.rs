@@ -333,7 +333,11 @@ fn fixed_array(n: usize) -> Value {
 }
 
 fn color() -> Value {
-    object("foxglove.Color", "RGBA, each in [0, 1]", &[("r", number()), ("g", number()), ("b", number()), ("a", number())])
+    object(
+        "foxglove.Color",
+        "RGBA, each in [0, 1]",
+        &[("r", number()), ("g", number()), ("b", number()), ("a", number())],
+    )
 }
 
 fn point2() -> Value {
@@ -577,8 +581,8 @@ mod tests {
         for f in &fields {
             assert!(required.contains(f), "{f} missing from the schema");
         }
-        let update = serde_json::to_value(SceneUpdate { entities: vec![SceneEntity::default()], ..Default::default() })
-            .unwrap();
+        let update =
+            serde_json::to_value(SceneUpdate { entities: vec![SceneEntity::default()], ..Default::default() }).unwrap();
         let entity_schema = &scene_update_schema()["properties"]["entities"]["items"];
         for f in update["entities"][0].as_object().unwrap().keys() {
             assert!(entity_schema["properties"].get(f).is_some(), "SceneEntity.{f} missing from the schema");

@@ -49,7 +49,7 @@ pub struct LogInfo {
 impl LogInfo {
     /// Reads the whole file once.
     pub fn read(path: &Path) -> Result<Self, LogError> {
-        let bytes = std::fs::metadata(path).map_err(|source| LogError::Read { path: path.to_path_buf(), source })?.len();
+        let bytes = std::fs::metadata(path).map_err(|error| LogError::Read { path: path.to_path_buf(), error })?.len();
         let mut scan = Scan::open(path)?;
         let mut per_channel: BTreeMap<u16, TopicInfo> = BTreeMap::new();
         let mut last_seq: BTreeMap<u16, u32> = BTreeMap::new();
@@ -137,20 +137,29 @@ impl LogInfo {
         let _ = writeln!(s, "file:      {} ({:.1} MB)", self.path.display(), self.bytes as f64 / 1e6);
         if !self.header.is_empty() {
             let h = |k: &str| self.header.get(k).map(String::as_str).unwrap_or("?");
-            let _ = writeln!(s, "log:       kind {}, part {}, time offset {} ns", h("kind"), h("part"), h("time_offset_ns"));
+            let _ = writeln!(
+                s,
+                "log:       kind {}, part {}, time offset {} ns",
+                h("kind"),
+                h("part"),
+                h("time_offset_ns")
+            );
         }
         match &self.truncation {
             None => {
                 let _ = writeln!(s, "status:    complete (summary and footer present)");
             }
             Some(why) => {
-                let _ = writeln!(s, "status:    truncated: no summary, {} messages recovered (stopped: {why})", self.messages);
+                let _ = writeln!(
+                    s,
+                    "status:    truncated: no summary, {} messages recovered (stopped: {why})",
+                    self.messages
+                );
             }
         }
         match (self.first_ns, self.last_ns) {
             (Some(a), Some(b)) => {
-                let _ =
-                    writeln!(s, "time:      {} .. {} s (duration {:.3} s)", secs(a), secs(b), self.duration_s());
+                let _ = writeln!(s, "time:      {} .. {} s (duration {:.3} s)", secs(a), secs(b), self.duration_s());
             }
             _ => {
                 let _ = writeln!(s, "time:      no messages");
@@ -173,10 +182,15 @@ impl LogInfo {
         let width = self.topics.iter().map(|t| t.topic.len()).max().unwrap_or(5).max(5);
         let swidth = self.topics.iter().map(|t| t.schema.len()).max().unwrap_or(6).max(6);
         let _ = writeln!(s, "topics:");
-        let _ = writeln!(s, "  {:width$}  {:swidth$}  {:>8}  {:>20}  {:>20}  {:>8}", "topic", "schema", "count", "first (s)", "last (s)", "rate Hz");
+        let _ = writeln!(
+            s,
+            "  {:width$}  {:swidth$}  {:>8}  {:>20}  {:>20}  {:>8}",
+            "topic", "schema", "count", "first (s)", "last (s)", "rate Hz"
+        );
         for t in &self.topics {
             let span = (t.last_ns - t.first_ns) as f64 * 1e-9;
-            let rate = if t.count > 1 && span > 0.0 { format!("{:.1}", (t.count - 1) as f64 / span) } else { "-".into() };
+            let rate =
+                if t.count > 1 && span > 0.0 { format!("{:.1}", (t.count - 1) as f64 / span) } else { "-".into() };
             let mut line = format!(
                 "  {:width$}  {:swidth$}  {:>8}  {:>20}  {:>20}  {:>8}",
                 t.topic,

@@ -49,16 +49,16 @@ pub const FRAME_CAMERA: &str = "camera";
 /// Errors of the logger and the log reader.
 #[derive(Debug, thiserror::Error)]
 pub enum LogError {
-    #[error("cannot create log directory {}: {source} (pass --log DIR with a writable directory)", path.display())]
-    CreateDir { path: PathBuf, source: std::io::Error },
+    #[error("cannot create log directory {}: {error} (pass --log DIR with a writable directory)", path.display())]
+    CreateDir { path: PathBuf, error: std::io::Error },
     #[error("log file {} already exists; flownav never overwrites a log (remove it or choose another name)", path.display())]
     Exists { path: PathBuf },
-    #[error("cannot create log file {}: {source} (pass --log DIR with a writable directory)", path.display())]
-    Create { path: PathBuf, source: std::io::Error },
+    #[error("cannot create log file {}: {error} (pass --log DIR with a writable directory)", path.display())]
+    Create { path: PathBuf, error: std::io::Error },
     #[error("cannot write log file {}: {message} (disk full or file removed? logging stopped, the run went on)", path.display())]
     Write { path: PathBuf, message: String },
-    #[error("cannot read log file {}: {source}", path.display())]
-    Read { path: PathBuf, source: std::io::Error },
+    #[error("cannot read log file {}: {error}", path.display())]
+    Read { path: PathBuf, error: std::io::Error },
     #[error("{} is not a flownav MCAP log: {message}", path.display())]
     NotMcap { path: PathBuf, message: String },
     #[error("{}: message on {topic} at {log_time_ns} ns cannot be decoded: {message}", path.display())]
@@ -262,11 +262,11 @@ fn civil_from_days(z: i64) -> (i64, u32, u32) {
 
 /// Creates `path`, refusing to overwrite an existing file.
 fn open_new(path: &Path) -> Result<File, LogError> {
-    File::options().write(true).create_new(true).open(path).map_err(|source| {
-        if source.kind() == std::io::ErrorKind::AlreadyExists {
+    File::options().write(true).create_new(true).open(path).map_err(|error| {
+        if error.kind() == std::io::ErrorKind::AlreadyExists {
             LogError::Exists { path: path.to_path_buf() }
         } else {
-            LogError::Create { path: path.to_path_buf(), source }
+            LogError::Create { path: path.to_path_buf(), error }
         }
     })
 }

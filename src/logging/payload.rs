@@ -309,7 +309,12 @@ mod tests {
         let p = PerceptionLog {
             perception: Perception {
                 tpo: Tpo { shape: TpoShape::Corridor, confidence: 0.8125, distance_m: Some(2.1) },
-                obstacle: Obstacle { present: true, distance_m: Some(1.3), bearing_rad: Some(-0.2), cell: Some([6, 3]) },
+                obstacle: Obstacle {
+                    present: true,
+                    distance_m: Some(1.3),
+                    bearing_rad: Some(-0.2),
+                    cell: Some([6, 3]),
+                },
                 rough: [[1, 0, 0, 1], [0; 4], [0; 4], [1; 4]],
                 fine,
             },

@@ -4,7 +4,7 @@
 use std::cmp::Reverse;
 use std::collections::{BTreeMap, BinaryHeap, HashMap, VecDeque};
 use std::fs::File;
-use std::io::Read;
+use std::io::{Read, Seek};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -54,7 +54,14 @@ pub(crate) struct Scan {
 
 impl Scan {
     pub fn open(path: &Path) -> Result<Self, LogError> {
-        let file = File::open(path).map_err(|source| LogError::Read { path: path.to_path_buf(), source })?;
+        let mut file = File::open(path).map_err(|error| LogError::Read { path: path.to_path_buf(), error })?;
+        let mut magic = [0u8; 8];
+        let n = file.read(&mut magic).map_err(|error| LogError::Read { path: path.to_path_buf(), error })?;
+        if magic[..n] != mcap::MAGIC[..n] || n < mcap::MAGIC.len() {
+            let message = "it does not start with the MCAP magic bytes (not an MCAP file, or empty)".to_string();
+            return Err(LogError::NotMcap { path: path.to_path_buf(), message });
+        }
+        file.rewind().map_err(|error| LogError::Read { path: path.to_path_buf(), error })?;
         let len = file.metadata().map(|m| m.len()).unwrap_or(u64::MAX);
         // A chunk cut off by a crash still has its placeholder length (2^64 - 1): the limit turns
         // that into an error instead of an attempt to buffer it. Records inside chunks may be
@@ -106,7 +113,7 @@ impl Scan {
                 LinearReadEvent::ReadRequest(need) => {
                     let n = match self.file.read(self.reader.insert(need)) {
                         Ok(n) => n,
-                        Err(source) => return Err(LogError::Read { path: self.path.clone(), source }),
+                        Err(error) => return Err(LogError::Read { path: self.path.clone(), error }),
                     };
                     self.reader.notify_read(n);
                     continue;
@@ -296,10 +303,9 @@ impl LogReader {
     /// Opens the parts of a split log, read one after the other in the given order.
     pub fn open_parts(paths: impl IntoIterator<Item = PathBuf>) -> Result<Self, LogError> {
         let mut pending_files: VecDeque<PathBuf> = paths.into_iter().collect();
-        let first = pending_files.pop_front().ok_or_else(|| LogError::Option {
-            name: "log files",
-            problem: "must name at least one file".into(),
-        })?;
+        let first = pending_files
+            .pop_front()
+            .ok_or_else(|| LogError::Option { name: "log files", problem: "must name at least one file".into() })?;
         Ok(Self {
             pending_files,
             scan: Some(Scan::open(&first)?),
@@ -343,8 +349,12 @@ impl LogReader {
                 }
                 Some(Scanned::Message { channel, sequence, log_time, data }) => {
                     let path = scan.path().to_path_buf();
-                    let event = decode(&channel, &data)
-                        .map_err(|message| LogError::Decode { path, topic: channel.topic.clone(), log_time_ns: log_time, message })?;
+                    let event = decode(&channel, &data).map_err(|message| LogError::Decode {
+                        path,
+                        topic: channel.topic.clone(),
+                        log_time_ns: log_time,
+                        message,
+                    })?;
                     let entry = LogEntry {
                         t_ns: log_time.saturating_sub(self.offset_ns),
                         log_time_ns: log_time,
@@ -440,11 +450,7 @@ fn decode(channel: &ChannelInfo, data: &[u8]) -> Result<LogEvent, String> {
             let tf: FrameTransform = parse(data)?;
             if tf.parent_frame_id == FRAME_ODOM && tf.child_frame_id == FRAME_BASE {
                 let q = tf.rotation;
-                LogEvent::Pose(Pose2D {
-                    x_m: tf.translation.x,
-                    y_m: tf.translation.y,
-                    theta_rad: 2.0 * q.z.atan2(q.w),
-                })
+                LogEvent::Pose(Pose2D { x_m: tf.translation.x, y_m: tf.translation.y, theta_rad: 2.0 * q.z.atan2(q.w) })
             } else {
                 LogEvent::Other
             }

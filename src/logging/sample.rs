@@ -29,7 +29,7 @@ pub fn frame(i: u64, width: usize, height: usize) -> LumaImage {
     let shift = 2 * i as usize;
     LumaImage::from_fn(width, height, |x, y| {
         let u = x + 10_000 - shift;
-        ((u * 37 ^ y * 91) % 251) as u8 ^ if (u / 16 + y / 16) % 2 == 0 { 0 } else { 0x80 }
+        (((u * 37) ^ (y * 91)) % 251) as u8 ^ if (u / 16 + y / 16).is_multiple_of(2) { 0 } else { 0x80 }
     })
 }
 
@@ -80,13 +80,13 @@ pub fn perception(i: u64) -> Perception {
         tpo: Tpo {
             shape: TpoShape::ALL[(i / 10) as usize % 5],
             confidence: 0.5 + 0.4 * ((i as f64) * 0.1).sin().abs(),
-            distance_m: (i % 7 != 0).then_some(3.0 - 0.01 * i as f64),
+            distance_m: (!i.is_multiple_of(7)).then_some(3.0 - 0.01 * i as f64),
         },
         obstacle: Obstacle {
-            present: i % 3 == 0,
-            distance_m: (i % 3 == 0).then_some(1.2 + 0.001 * i as f64),
-            bearing_rad: (i % 3 == 0).then_some(-0.1),
-            cell: (i % 3 == 0).then_some([5, 3]),
+            present: i.is_multiple_of(3),
+            distance_m: (i.is_multiple_of(3)).then_some(1.2 + 0.001 * i as f64),
+            bearing_rad: (i.is_multiple_of(3)).then_some(-0.1),
+            cell: (i.is_multiple_of(3)).then_some([5, 3]),
         },
         rough: [[1, 0, 0, 1], [1, 0, 0, 1], [1, 0, 0, 1], [1, 1, 1, 1]],
         fine,
@@ -99,8 +99,8 @@ pub fn setpoint(i: u64) -> SetpointLog {
     SetpointLog {
         v: 0.25,
         omega,
-        clamped: i % 4 == 0,
-        requested: (i % 4 == 0).then_some(BodyVelocity { v: 0.4, omega }),
+        clamped: i.is_multiple_of(4),
+        requested: (i.is_multiple_of(4)).then_some(BodyVelocity { v: 0.4, omega }),
     }
 }
 
@@ -118,8 +118,20 @@ pub fn odometry(k: u64) -> Odometry {
 pub fn world() -> WorldGeometry {
     WorldGeometry {
         boxes: vec![
-            WorldBox { id: "wall_left".into(), center_m: [5.0, 1.0], size_m: [10.0, 0.1, 2.5], yaw_rad: 0.0, wall: true },
-            WorldBox { id: "wall_right".into(), center_m: [5.0, -1.0], size_m: [10.0, 0.1, 2.5], yaw_rad: 0.0, wall: true },
+            WorldBox {
+                id: "wall_left".into(),
+                center_m: [5.0, 1.0],
+                size_m: [10.0, 0.1, 2.5],
+                yaw_rad: 0.0,
+                wall: true,
+            },
+            WorldBox {
+                id: "wall_right".into(),
+                center_m: [5.0, -1.0],
+                size_m: [10.0, 0.1, 2.5],
+                yaw_rad: 0.0,
+                wall: true,
+            },
             WorldBox { id: "box".into(), center_m: [3.0, 0.4], size_m: [0.4, 0.4, 0.5], yaw_rad: 0.3, wall: false },
         ],
         cylinders: vec![WorldCylinder { id: "person".into(), center_m: [6.0, -0.3], radius_m: 0.25, height_m: 1.7 }],
@@ -138,12 +150,21 @@ pub fn log_frame(log: &LogHandle, i: u64, images: SampleImages, width: usize, he
     if i > 0 {
         log.flow(t, &flow_field(i, width, height));
         log.perception(t, &perception(i), json!({"frame": i, "vplane_l2": [[0.5, 0.25], [1.0, 0.125]]}));
-        log.goal(t, &GoalLog { v: 0.3, angle_rad: 0.05, waypoint: Some("door_a".into()), waypoint_index: Some(1), remaining_m: Some(4.0) });
+        log.goal(
+            t,
+            &GoalLog {
+                v: 0.3,
+                angle_rad: 0.05,
+                waypoint: Some("door_a".into()),
+                waypoint_index: Some(1),
+                remaining_m: Some(4.0),
+            },
+        );
         log.setpoint(t, &setpoint(i));
     }
     let x = 0.25 * t as f64 * 1e-9;
     log.pose(t, &Pose2D { x_m: x, y_m: 0.0, theta_rad: 0.01 * i as f64 });
-    if i % 10 == 0 {
+    if i.is_multiple_of(10) {
         log.base_status(&BaseStatus { t_ns: t, battery_v: Some(12.1), ..Default::default() });
         log.log(t, LogLevel::Info, format!("frame {i}"));
     }

@@ -199,6 +199,12 @@ impl LogHandle {
     pub fn drops(&self) -> LoggerStats {
         self.shared.stats()
     }
+
+    /// Messages queued and not yet written: images, data, critical.
+    pub fn waiting(&self) -> [usize; 3] {
+        let n = |c: usize| self.shared.pending[c].load(Ordering::Acquire);
+        [n(IMAGES), n(DATA), n(CRITICAL)]
+    }
 }
 
 /// What a closed logger wrote.
@@ -234,7 +240,7 @@ impl LogWriter {
     /// overwrite; `-p001`, `-p002`, ... parts when splitting).
     pub fn create(dir: &Path, options: LogOptions) -> Result<Self, LogError> {
         options.validate()?;
-        std::fs::create_dir_all(dir).map_err(|source| LogError::CreateDir { path: dir.to_path_buf(), source })?;
+        std::fs::create_dir_all(dir).map_err(|error| LogError::CreateDir { path: dir.to_path_buf(), error })?;
         let base = default_file_name(std::time::SystemTime::now(), &options.kind);
         let split = options.split_bytes.is_some();
         for attempt in 1..1000u32 {
@@ -276,7 +282,10 @@ impl LogWriter {
                 let naming = Naming { dir, stem, split: options.split_bytes.is_some() };
                 Worker::run(file, first, naming, options, rx, worker_shared)
             })
-            .map_err(|e| LogError::Write { path: path.clone(), message: format!("cannot start the writer thread: {e}") })?;
+            .map_err(|e| LogError::Write {
+                path: path.clone(),
+                message: format!("cannot start the writer thread: {e}"),
+            })?;
         Ok(Self { handle: LogHandle { tx, shared }, path, thread: Some(thread) })
     }
 
@@ -599,7 +608,11 @@ impl Worker {
             }
             Item::Calibration { t, calibration } => {
                 self.latch(Topic::Calibration, t, encode::camera_calibration(t.saturating_add(offset), &calibration));
-                self.latch(Topic::CameraMount, t, encode::camera_mount_transform(t.saturating_add(offset), &calibration));
+                self.latch(
+                    Topic::CameraMount,
+                    t,
+                    encode::camera_mount_transform(t.saturating_add(offset), &calibration),
+                );
             }
             Item::Flow { t, field } => {
                 self.flush_pending_flow();
@@ -609,7 +622,11 @@ impl Worker {
             Item::Perception { t, perception, attributes } => {
                 if let Some((ft, field)) = self.pending_flow.take() {
                     let masks = (ft == t).then_some(&*perception);
-                    self.emit(Topic::FlowAnnotations, ft, &encode::flow_annotations(ft.saturating_add(offset), &field, masks));
+                    self.emit(
+                        Topic::FlowAnnotations,
+                        ft,
+                        &encode::flow_annotations(ft.saturating_add(offset), &field, masks),
+                    );
                 }
                 self.emit(Topic::Perception, t, &encode::perception(&perception, &attributes));
             }
@@ -620,9 +637,13 @@ impl Worker {
                 let data = serde_json::to_vec(&s).unwrap_or_default();
                 self.emit(Topic::BaseStatus, s.t_ns, &data);
             }
-            Item::Pose { t, pose } => self.emit(Topic::RobotPose, t, &encode::robot_pose(t.saturating_add(offset), &pose)),
+            Item::Pose { t, pose } => {
+                self.emit(Topic::RobotPose, t, &encode::robot_pose(t.saturating_add(offset), &pose))
+            }
             Item::World { t, world } => self.latch(Topic::World, t, encode::world(t.saturating_add(offset), &world)),
-            Item::Log { t, level, message } => self.emit(Topic::Log, t, &encode::log_line(t.saturating_add(offset), level, &message)),
+            Item::Log { t, level, message } => {
+                self.emit(Topic::Log, t, &encode::log_line(t.saturating_add(offset), level, &message))
+            }
             Item::Close => {}
         }
         self.maybe_split();
