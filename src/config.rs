@@ -49,11 +49,10 @@ impl Config {
         self.flow.validate()?;
         self.pafsis.validate()?;
         self.mofis.validate()?;
-        self.control.validate()
+        self.control.validate()?;
         self.camera
             .validate()
-            .map_err(|e| ConfigError::Invalid { field: format!("camera.{}", e.field), problem: e.problem })
-        self.control.validate()?;
+            .map_err(|e| ConfigError::Invalid { field: format!("camera.{}", e.field), problem: e.problem })?;
         self.offis.check().map_err(|(field, problem)| ConfigError::Invalid { field, problem })
     }
 }
