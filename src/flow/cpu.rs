@@ -136,8 +136,9 @@ impl FlowEngine for CpuFlow {
         self.flags.clear();
         self.flags.resize(n, (false, false));
         self.block_buf.resize(bs * bs, 0);
-        self.field.rows = p.rows;
-        self.field.cols = p.cols;
+        let (rows, cols) = p.grid(w, h);
+        self.field.rows = rows;
+        self.field.cols = cols;
         self.field.width = w;
         self.field.height = h;
         self.field.vectors.clear();
@@ -152,14 +153,14 @@ impl FlowEngine for CpuFlow {
             let kernel = self.kernels[l];
             self.prev.clone_from(&self.disp);
             for i in 0..n {
-                let (r, c) = (i / p.cols, i % p.cols);
+                let (r, c) = (i / cols, i % cols);
                 let (ox, oy) = self.origins[i];
                 let x0 = level_origin(ox, bs, bl, l, wl);
                 let y0 = level_origin(oy, bs, bl, l, hl);
                 let centre = if coarsest {
                     (0, 0)
                 } else {
-                    let m = median3x3(&self.prev, p.rows, p.cols, r, c);
+                    let m = median3x3(&self.prev, rows, cols, r, c);
                     (2 * m.0, 2 * m.1)
                 };
                 let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
@@ -171,7 +172,7 @@ impl FlowEngine for CpuFlow {
                     preds[1] = Some(self.disp[i - 1]);
                 }
                 if r > 0 {
-                    preds[2] = Some(self.disp[i - p.cols]);
+                    preds[2] = Some(self.disp[i - cols]);
                 }
                 let found = search(kernel, blk, &lev.hp_b, x0, y0, bl, &win, &preds, amb_q8, &mut self.costs);
                 self.disp[i] = found.d;
