@@ -289,3 +289,24 @@ fn backend_selection() {
         }
     }
 }
+
+#[test]
+fn exact_ties_follow_the_contract_tie_break() {
+    let Some(ctx) = context() else { return };
+    // Periodic patterns make many candidates cost exactly the same: the winner is decided only
+    // by the tie-break (distance to the window centre, then dy, then dx).
+    let stripes = |shift: usize| LumaImage::from_fn(96, 64, move |x, _| [20u8, 200, 90, 160][(x + shift) % 4]);
+    let checker = |shift: usize| LumaImage::from_fn(96, 64, move |x, y| if ((x + shift) / 3 + y / 3) % 2 == 0 { 40 } else { 220 });
+    let flat = LumaImage::from_fn(96, 64, |_, _| 77);
+    let p = small(3, 4, 16, 5);
+    for (name, a, b) in [
+        ("stripes", stripes(0), stripes(1)),
+        ("checker", checker(0), checker(2)),
+        ("flat", flat.clone(), flat.clone()),
+    ] {
+        let (g, c) = both(&ctx, &p, &a, &b);
+        assert_same(&g, &c, name);
+        let reference = flownav::flow::reference::reference_flow(&p, &a, &b).expect("reference");
+        assert_same(&g, &reference, &format!("{name} vs reference"));
+    }
+}
