@@ -12,6 +12,8 @@
 //! | [`prefilter`] | the local-mean high-pass that makes SAD tolerant to exposure changes; 2×2 pyramid |
 //! | [`sad`] | sum-of-absolute-differences kernels (AVX2 / SSE2 / scalar) with early termination |
 //! | [`cpu`] | [`cpu::CpuFlow`], the fast CPU engine |
+//! | [`gpu`] | [`gpu::GpuFlow`], the wgpu compute-shader engine (same results as the CPU engine) |
+//! | `backend` | [`create_engine`]: `flow.backend` = auto / cpu / gpu, with a [`BackendReport`] |
 //! | [`reference`] | [`reference::reference_flow`], the contract written as plainly as possible |
 
 mod backend;
