@@ -69,7 +69,9 @@ fn bench(c: &mut Criterion) {
     g.sample_size(10).warm_up_time(Duration::from_secs(1));
     for (name, params) in [("default", &default), ("dense", &dense)] {
         let mut cpu = CpuFlow::new(params.clone()).unwrap();
-        g.bench_function(format!("cpu/{name}"), |bch| bch.iter(|| black_box(cpu.compute(&a, &b).unwrap().valid_count())));
+        g.bench_function(format!("cpu/{name}"), |bch| {
+            bch.iter(|| black_box(cpu.compute(&a, &b).unwrap().valid_count()))
+        });
         let Some(ctx) = &ctx else { continue };
         if name == "dense" && software && std::env::var_os("FLOWNAV_BENCH_SOFTWARE_DENSE").is_none() {
             eprintln!("skipping gpu/dense on a software adapter (set FLOWNAV_BENCH_SOFTWARE_DENSE=1 to run it)");
@@ -79,7 +81,9 @@ fn bench(c: &mut Criterion) {
         // Parity on the benchmark frames, and the warm-up that compiles the pipelines.
         let expected = cpu.compute(&a, &b).unwrap().clone();
         assert_eq!(engine.compute(&a, &b).unwrap().vectors.len(), expected.vectors.len());
-        g.bench_function(format!("gpu/{name}"), |bch| bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count())));
+        g.bench_function(format!("gpu/{name}"), |bch| {
+            bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
+        });
         // A stream alternating a, b, a, b: each pair's A is the previous pair's B.
         let frames = [&a, &b];
         let mut i = 0usize;

@@ -71,8 +71,10 @@ fn texture(w: usize, h: usize, seed: u64, flat: bool) -> Vec<f64> {
     img
 }
 
-/// Samples `src` (a `sw × sh` float image) at (x + dx, y + dy), bilinear, edge-clamped.
-fn warp(src: &[f64], sw: usize, sh: usize, w: usize, h: usize, dx: f64, dy: f64, gain: f64) -> LumaImage {
+/// Samples `scene` (a `sw × sh` float image) at (x + dx, y + dy) for a `w × h` frame, bilinear,
+/// edge-clamped, times `gain`.
+fn warp(scene: (&[f64], usize, usize), (w, h): (usize, usize), (dx, dy): (f64, f64), gain: f64) -> LumaImage {
+    let (src, sw, sh) = scene;
     LumaImage::from_fn(w, h, |x, y| {
         let (fx, fy) = ((x as f64 + dx).clamp(0.0, sw as f64 - 1.001), (y as f64 + dy).clamp(0.0, sh as f64 - 1.001));
         let (ix, iy) = (fx as usize, fy as usize);
@@ -91,8 +93,8 @@ fn warp(src: &[f64], sw: usize, sh: usize, w: usize, h: usize, dx: f64, dy: f64,
 fn pair(w: usize, h: usize, seed: u64, mx: f64, my: f64, flat: bool) -> (LumaImage, LumaImage) {
     let scene = texture(w + 64, h + 64, seed, flat);
     let (sw, sh) = (w + 64, h + 64);
-    let a = warp(&scene, sw, sh, w, h, 32.0, 32.0, 1.0);
-    let b = warp(&scene, sw, sh, w, h, 32.0 - mx, 32.0 - my, 1.05);
+    let a = warp((&scene, sw, sh), (w, h), (32.0, 32.0), 1.0);
+    let b = warp((&scene, sw, sh), (w, h), (32.0 - mx, 32.0 - my), 1.05);
     (a, b)
 }
 
@@ -209,6 +211,15 @@ fn dense_mode_grid_and_parity() {
     assert_same(&g, &c, "dense stride 8");
     let reference = flownav::flow::reference::reference_flow(&p, &a, &b).expect("reference");
     assert_same(&g, &reference, "dense stride 8 vs reference");
+    // The rule at 720p, and the errors.
+    assert_eq!(p.grid(1280, 720), (88, 160));
+    let tiled = FlowParams { placement: Placement::Tile, ..p.clone() };
+    assert!(tiled.validate().unwrap_err().to_string().contains("flow.stride"));
+    let coarse = FlowParams { stride: Some(16), ..p.clone() };
+    let err = CpuFlow::new(coarse.clone()).unwrap().compute(&a, &b).unwrap_err().to_string();
+    assert!(err.contains("smaller flow.stride"), "{err}");
+    let err = GpuFlow::new(Arc::clone(&ctx), coarse).unwrap().compute(&a, &b).unwrap_err().to_string();
+    assert!(err.contains("smaller flow.stride"), "{err}");
 }
 
 #[test]
@@ -216,8 +227,9 @@ fn pipelined_stream_reuses_frames_and_matches() {
     let Some(ctx) = context() else { return };
     let params = small(4, 5, 16, 5);
     let scene = texture(224, 160, 51, false);
-    let frames: Vec<LumaImage> =
-        (0..4).map(|i| warp(&scene, 224, 160, 128, 96, 40.0 - 2.5 * i as f64, 30.0 + 1.25 * i as f64, 1.0)).collect();
+    let frames: Vec<LumaImage> = (0..4)
+        .map(|i| warp((&scene, 224, 160), (128, 96), (40.0 - 2.5 * i as f64, 30.0 + 1.25 * i as f64), 1.0))
+        .collect();
     let mut g = GpuFlow::new(Arc::clone(&ctx), params.clone()).expect("GPU engine");
     let mut c = CpuFlow::new(params).expect("CPU engine");
     let expected: Vec<FlowField> = frames.windows(2).map(|p| c.compute(&p[0], &p[1]).unwrap().clone()).collect();
@@ -296,14 +308,14 @@ fn exact_ties_follow_the_contract_tie_break() {
     // Periodic patterns make many candidates cost exactly the same: the winner is decided only
     // by the tie-break (distance to the window centre, then dy, then dx).
     let stripes = |shift: usize| LumaImage::from_fn(96, 64, move |x, _| [20u8, 200, 90, 160][(x + shift) % 4]);
-    let checker = |shift: usize| LumaImage::from_fn(96, 64, move |x, y| if ((x + shift) / 3 + y / 3) % 2 == 0 { 40 } else { 220 });
+    let checker = |shift: usize| {
+        LumaImage::from_fn(96, 64, move |x, y| if ((x + shift) / 3 + y / 3).is_multiple_of(2) { 40 } else { 220 })
+    };
     let flat = LumaImage::from_fn(96, 64, |_, _| 77);
     let p = small(3, 4, 16, 5);
-    for (name, a, b) in [
-        ("stripes", stripes(0), stripes(1)),
-        ("checker", checker(0), checker(2)),
-        ("flat", flat.clone(), flat.clone()),
-    ] {
+    for (name, a, b) in
+        [("stripes", stripes(0), stripes(1)), ("checker", checker(0), checker(2)), ("flat", flat.clone(), flat.clone())]
+    {
         let (g, c) = both(&ctx, &p, &a, &b);
         assert_same(&g, &c, name);
         let reference = flownav::flow::reference::reference_flow(&p, &a, &b).expect("reference");

@@ -655,7 +655,7 @@ impl GpuFlow {
                 "the cost grids of {n} blocks at radius {} need {} MiB, more than this GPU's storage buffer limit; \
                  use a smaller radius (or a pyramid), fewer blocks, or --flow-backend cpu",
                 p.radius.max(p.refine_radius),
-                4 * gcost_words >> 20
+                (4 * gcost_words) >> 20
             )));
         }
 
