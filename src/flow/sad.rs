@@ -96,6 +96,56 @@ impl Kernel {
     }
 }
 
+/// A SAD kernel as a type, so that a search loop can be compiled once per kernel with the
+/// kernel inlined (the AVX2 instance inside an AVX2-enabled function).
+pub trait SadFn {
+    /// SAD of the `block`×`block` block at `a` (rows `block` bytes apart) and the window at `b`
+    /// (rows `stride` bytes apart), with early termination as in [`Kernel::sad`].
+    ///
+    /// # Safety
+    /// Both regions must be readable; the CPU must support the kernel and the block width
+    /// ([`Kernel::supports`]).
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32>;
+}
+
+/// [`Kernel::Avx2`] as a type.
+#[cfg(target_arch = "x86_64")]
+pub struct Avx2Sad;
+/// [`Kernel::Sse2`] as a type.
+#[cfg(target_arch = "x86_64")]
+pub struct Sse2Sad;
+/// [`Kernel::Scalar`] as a type.
+pub struct ScalarSad;
+
+#[cfg(target_arch = "x86_64")]
+impl SadFn for Avx2Sad {
+    #[inline(always)]
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY: forwarded caller contract.
+        unsafe { x86::sad_avx2(a, b, stride, block, limit) }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl SadFn for Sse2Sad {
+    #[inline(always)]
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY: forwarded caller contract.
+        unsafe { x86::sad_sse2(a, b, stride, block, limit) }
+    }
+}
+
+impl SadFn for ScalarSad {
+    #[inline(always)]
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY: the caller guarantees block*block bytes at `a` and the window at `b`.
+        let (a, img) = unsafe {
+            (std::slice::from_raw_parts(a, block * block), std::slice::from_raw_parts(b, (block - 1) * stride + block))
+        };
+        sad_scalar(a, img, 0, stride, block, limit)
+    }
+}
+
 /// Portable SAD with the same early-termination checkpoints as the SIMD kernels.
 pub fn sad_scalar(a: &[u8], img: &[u8], off: usize, stride: usize, block: usize, limit: u32) -> Option<u32> {
     let mut total = 0u32;
@@ -127,6 +177,7 @@ mod x86 {
     /// AVX2 must be available; `a` must point at `block*block` readable bytes and `b` at
     /// `block` rows of `block` readable bytes, `stride` apart. `block.is_multiple_of(32)`.
     #[target_feature(enable = "avx2")]
+    #[inline]
     pub unsafe fn sad_avx2(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): the caller guarantees every address read here is in bounds.
         unsafe {
@@ -161,6 +212,7 @@ mod x86 {
     /// The default 32-pixel block: one `vpsadbw` per row, two accumulators, fully unrolled
     /// between checkpoints.
     #[target_feature(enable = "avx2")]
+    #[inline]
     unsafe fn sad_avx2_32(a: *const u8, b: *const u8, stride: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): 32 rows of 32 bytes at `a` (stride 32) and `b` (stride `stride`).
         unsafe {
@@ -190,6 +242,7 @@ mod x86 {
 
     /// # Safety
     /// As [`sad_avx2`] with `block.is_multiple_of(16)`; SSE2 is always present on x86-64.
+    #[inline]
     pub unsafe fn sad_sse2(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): the caller guarantees every address read here is in bounds.
         unsafe {
