@@ -448,14 +448,31 @@ fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
     let gh = (win.hi.1 - win.lo.1 + 1) as usize;
     costs.clear();
     costs.resize(gw * gh, PENDING);
+    // Candidates whose full cost is known, in evaluation order (the rest were abandoned).
+    let mut done: [(i32, i32); 64] = [(0, 0); 64];
+    let mut ndone = 0usize;
+    let mut overflow = false;
+    let mut note = |d: (i32, i32)| {
+        if ndone < done.len() {
+            done[ndone] = d;
+            ndone += 1;
+        } else {
+            overflow = true;
+        }
+    };
     let offset = |d: (i32, i32)| (y0 as i32 + d.1) as usize * stride + (x0 as i32 + d.0) as usize;
     // Every candidate window lies between these two, all inside frame B.
     assert!(a.len() >= block * block && y0 as i32 + win.lo.1 >= 0 && x0 as i32 + win.lo.0 >= 0);
     assert!(offset(win.hi) + (block - 1) * stride + block <= data.len(), "search window outside frame B");
-    // SAFETY: `d` lies in the window, whose blocks are all inside `data` (asserted above), and
-    // `search` checked that the CPU supports the kernel.
-    let sad =
-        |d: (i32, i32), limit: u32| unsafe { S::sad(a.as_ptr(), data.as_ptr().add(offset(d)), stride, block, limit) };
+    // A macro, not a closure: closures do not inherit `search_avx2`'s target features, so the
+    // AVX2 kernel would not inline into one.
+    macro_rules! sad {
+        ($d:expr, $limit:expr) => {
+            // SAFETY: the displacement lies in the window, whose blocks are all inside `data`
+            // (asserted above), and `search` checked that the CPU supports the kernel.
+            unsafe { S::sad(a.as_ptr(), data.as_ptr().add(offset($d)), stride, block, $limit) }
+        };
+    }
     let bound = |best: u32| (u64::from(best) * (256 + q.amb_q8) / 256).min(u64::from(PENDING - 1)) as u32;
 
     let mut best = (u32::MAX, (i32::MAX, i32::MAX, i32::MAX), (0, 0));
@@ -467,11 +484,13 @@ fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
     };
     for d in q.preds.iter().flatten().copied() {
         if win.contains(d) && costs[win.index(d)] == PENDING {
-            let c = sad(d, u32::MAX).expect("no limit");
+            let c = sad!(d, u32::MAX).expect("no limit");
             costs[win.index(d)] = c;
+            note(d);
             consider(d, c, &mut best);
         }
     }
+    let mut limit = bound(best.0);
     for dy in win.lo.1..=win.hi.1 {
         let row = (dy - win.lo.1) as usize * gw;
         for dx in win.lo.0..=win.hi.0 {
@@ -479,11 +498,12 @@ fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
             if costs[gi] != PENDING {
                 continue;
             }
-            let limit = if best.0 == u32::MAX { u32::MAX } else { bound(best.0) };
-            match sad((dx, dy), limit) {
+            match sad!((dx, dy), limit) {
                 Some(c) => {
                     costs[gi] = c;
+                    note((dx, dy));
                     consider((dx, dy), c, &mut best);
+                    limit = bound(best.0);
                 }
                 None => costs[gi] = ABANDONED,
             }
@@ -493,30 +513,23 @@ fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
 
     let edge = d1.0 == win.lo.0 || d1.0 == win.hi.0 || d1.1 == win.lo.1 || d1.1 == win.hi.1;
     let thr = u64::from(c1) * (256 + q.amb_q8);
-    let mut ambiguous = false;
-    'scan: for gy in 0..gh {
-        for gx in 0..gw {
-            let c = costs[gy * gw + gx];
-            if c == ABANDONED || u64::from(c) * 256 > thr {
-                continue;
-            }
-            let d = (win.lo.0 + gx as i32, win.lo.1 + gy as i32);
-            if (d.0 - d1.0).abs().max((d.1 - d1.1).abs()) < 2 {
-                continue;
-            }
-            let is_min = (-1..=1).all(|ny: i32| {
-                (-1..=1).all(|nx: i32| {
-                    let e = (d.0 + nx, d.1 + ny);
-                    !win.contains(e) || costs[win.index(e)] >= c
-                })
-            });
-            if is_min {
-                ambiguous = true;
-                break 'scan;
-            }
+    let is_competitor = |d: (i32, i32)| {
+        let c = costs[win.index(d)];
+        if c == ABANDONED || u64::from(c) * 256 > thr || (d.0 - d1.0).abs().max((d.1 - d1.1).abs()) < 2 {
+            return false;
         }
-    }
-
+        (-1..=1).all(|ny: i32| {
+            (-1..=1).all(|nx: i32| {
+                let e = (d.0 + nx, d.1 + ny);
+                !win.contains(e) || costs[win.index(e)] >= c
+            })
+        })
+    };
+    let ambiguous = if overflow {
+        (win.lo.1..=win.hi.1).any(|dy| (win.lo.0..=win.hi.0).any(|dx| is_competitor((dx, dy))))
+    } else {
+        done[..ndone].iter().any(|&d| is_competitor(d))
+    };
     Found { d: d1, cost: c1, edge, ambiguous }
 }
 

@@ -122,7 +122,7 @@ impl SadFn for Avx2Sad {
     #[inline(always)]
     unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
         // SAFETY: forwarded caller contract.
-        unsafe { x86::sad_avx2(a, b, stride, block, limit) }
+        unsafe { x86::sad_avx2_inl(a, b, stride, block, limit) }
     }
 }
 
@@ -165,21 +165,38 @@ mod x86 {
     use super::CHECK_ROWS;
     use std::arch::x86_64::*;
 
-    #[target_feature(enable = "avx2")]
-    #[inline]
-    fn hsum256(v: __m256i) -> u32 {
-        let s = _mm_add_epi64(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
-        let s = _mm_add_epi64(s, _mm_unpackhi_epi64(s, s));
-        _mm_cvtsi128_si32(s) as u32
+    // The `#[inline(always)]` helpers below carry no `target_feature` themselves: they are
+    // inlined into AVX2-enabled callers (`sad_avx2`, `cpu::search_avx2`), where the intrinsics
+    // then inline too. Callers must ensure AVX2 is present.
+
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    unsafe fn hsum256(v: __m256i) -> u32 {
+        // SAFETY: caller guarantees AVX2.
+        unsafe {
+            let s = _mm_add_epi64(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+            let s = _mm_add_epi64(s, _mm_unpackhi_epi64(s, s));
+            _mm_cvtsi128_si32(s) as u32
+        }
     }
 
     /// # Safety
     /// AVX2 must be available; `a` must point at `block*block` readable bytes and `b` at
     /// `block` rows of `block` readable bytes, `stride` apart. `block.is_multiple_of(32)`.
     #[target_feature(enable = "avx2")]
-    #[inline]
     pub unsafe fn sad_avx2(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
-        // SAFETY (whole body): the caller guarantees every address read here is in bounds.
+        // SAFETY: same contract.
+        unsafe { sad_avx2_inl(a, b, stride, block, limit) }
+    }
+
+    /// [`sad_avx2`] for inlining into AVX2-enabled callers.
+    ///
+    /// # Safety
+    /// As [`sad_avx2`].
+    #[inline(always)]
+    pub unsafe fn sad_avx2_inl(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY (whole body): the caller guarantees AVX2 and that every address read is in bounds.
         unsafe {
             if block == 32 {
                 return sad_avx2_32(a, b, stride, limit);
@@ -211,8 +228,10 @@ mod x86 {
 
     /// The default 32-pixel block: one `vpsadbw` per row, two accumulators, fully unrolled
     /// between checkpoints.
-    #[target_feature(enable = "avx2")]
-    #[inline]
+    ///
+    /// # Safety
+    /// As [`sad_avx2`] with `block == 32`.
+    #[inline(always)]
     unsafe fn sad_avx2_32(a: *const u8, b: *const u8, stride: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): 32 rows of 32 bytes at `a` (stride 32) and `b` (stride `stride`).
         unsafe {
