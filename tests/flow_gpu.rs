@@ -322,3 +322,52 @@ fn exact_ties_follow_the_contract_tie_break() {
         assert_same(&g, &reference, &format!("{name} vs reference"));
     }
 }
+
+#[test]
+fn cli_gpu_backend_runs_or_names_what_to_install() {
+    let tmp = std::env::temp_dir().join(format!("flownav-gpu-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let (a, b) = pair(128, 96, 71, 2.0, -1.0, false);
+    let (pa, pb) = (tmp.join("a.png"), tmp.join("b.png"));
+    image::GrayImage::from_raw(128, 96, a.data().to_vec()).unwrap().save(&pa).unwrap();
+    image::GrayImage::from_raw(128, 96, b.data().to_vec()).unwrap().save(&pb).unwrap();
+    let run = |backend_env: Option<&str>| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_flownav"));
+        cmd.args([
+            "flow",
+            "--json",
+            "--flow-backend",
+            "gpu",
+            "--rows",
+            "2",
+            "--cols",
+            "3",
+            "--block",
+            "16",
+            "--radius",
+            "4",
+        ]);
+        cmd.args([&pa, &pb]);
+        if let Some(b) = backend_env {
+            cmd.env("WGPU_BACKEND", b);
+        }
+        cmd.output().unwrap()
+    };
+    // A wgpu backend that does not exist off Apple platforms: no adapter, a clear error.
+    if !cfg!(target_vendor = "apple") {
+        let out = run(Some("metal"));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && !err.contains("panicked"), "{err}");
+        for needle in ["no GPU adapter", "mesa-vulkan-drivers", "--flow-backend cpu"] {
+            assert!(err.contains(needle), "{err}");
+        }
+    }
+    if context().is_some() {
+        let out = run(None);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(json["backend"], "gpu");
+        assert_eq!(json["vectors"].as_array().unwrap().len(), 6);
+    }
+    std::fs::remove_dir_all(&tmp).ok();
+}
