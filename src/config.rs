@@ -66,6 +66,14 @@ impl FlowParams {
         if self.rows == 0 || self.cols == 0 {
             return bad("rows/cols", "must be at least 1");
         }
+        if let Some(stride) = self.stride {
+            if !(1..=256).contains(&stride) {
+                return bad("stride", "must be in 1..=256 pixels (leave it out for the rows x cols grid)");
+            }
+            if self.placement != crate::flow::Placement::Spread {
+                return bad("stride", "requires placement = \"spread\" (dense mode centres one block per stride cell)");
+            }
+        }
         if !(4..=256).contains(&self.block) || !self.block.is_multiple_of(2) {
             return bad("block", "must be an even number of pixels in 4..=256");
         }

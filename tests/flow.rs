@@ -249,13 +249,12 @@ fn cli_bad_inputs() {
     std::fs::write(&empty, b"").unwrap();
     let text = tmp.path().join("notes.png");
     std::fs::write(&text, b"not an image at all").unwrap();
-    let cases: [(Vec<&str>, &[&str]); 6] = [
+    let cases: [(Vec<&str>, &[&str]); 5] = [
         (vec![graf.to_str().unwrap(), moto.to_str().unwrap()], &["512x512", "741x500", "same size"]),
         (vec![graf.to_str().unwrap(), empty.to_str().unwrap()], &["empty.png", "empty"]),
         (vec![text.to_str().unwrap(), graf.to_str().unwrap()], &["notes.png", "not a readable"]),
         (vec![graf.to_str().unwrap(), "/nonexistent/b.png"], &["/nonexistent/b.png"]),
         (vec![graf.to_str().unwrap(), graf.to_str().unwrap(), "--block", "7"], &["flow.block"]),
-        (vec![graf.to_str().unwrap(), graf.to_str().unwrap(), "--flow-backend", "gpu"], &["gpu", "--flow-backend cpu"]),
     ];
     for (args, needles) in cases {
         let mut full = vec!["flow"];

@@ -12,7 +12,7 @@
 //!   tie with it, or be an ambiguity competitor, so the result equals the exhaustive search.
 
 use super::prefilter::{self, Scratch};
-use super::sad::Kernel;
+use super::sad::{self, Kernel};
 use super::{FlowEngine, FlowError, FlowField, FlowParams, FlowVector, Validity};
 use hal::LumaImage;
 
@@ -136,8 +136,9 @@ impl FlowEngine for CpuFlow {
         self.flags.clear();
         self.flags.resize(n, (false, false));
         self.block_buf.resize(bs * bs, 0);
-        self.field.rows = p.rows;
-        self.field.cols = p.cols;
+        let (rows, cols) = p.grid(w, h);
+        self.field.rows = rows;
+        self.field.cols = cols;
         self.field.width = w;
         self.field.height = h;
         self.field.vectors.clear();
@@ -152,14 +153,14 @@ impl FlowEngine for CpuFlow {
             let kernel = self.kernels[l];
             self.prev.clone_from(&self.disp);
             for i in 0..n {
-                let (r, c) = (i / p.cols, i % p.cols);
+                let (r, c) = (i / cols, i % cols);
                 let (ox, oy) = self.origins[i];
                 let x0 = level_origin(ox, bs, bl, l, wl);
                 let y0 = level_origin(oy, bs, bl, l, hl);
                 let centre = if coarsest {
                     (0, 0)
                 } else {
-                    let m = median3x3(&self.prev, p.rows, p.cols, r, c);
+                    let m = median3x3(&self.prev, rows, cols, r, c);
                     (2 * m.0, 2 * m.1)
                 };
                 let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
@@ -171,15 +172,16 @@ impl FlowEngine for CpuFlow {
                     preds[1] = Some(self.disp[i - 1]);
                 }
                 if r > 0 {
-                    preds[2] = Some(self.disp[i - p.cols]);
+                    preds[2] = Some(self.disp[i - cols]);
                 }
-                let found = search(kernel, blk, &lev.hp_b, x0, y0, bl, &win, &preds, amb_q8, &mut self.costs);
+                let query = Query { a: blk, b: &lev.hp_b, x0, y0, block: bl, win, preds, amb_q8 };
+                let found = search(kernel, &query, &mut self.costs);
                 self.disp[i] = found.d;
                 self.flags[i].0 |= found.edge;
                 self.flags[i].1 |= found.ambiguous;
                 if l == 0 {
-                    let textureless =
-                        16 * texture(&self.block_buf, bs) < p.min_texture_q4() * (2 * bs * (bs - 1)) as u64;
+                    let st = level0_stats(kernel, &self.block_buf, &lev.hp_b, x0, y0, bs, &win, found.d);
+                    let textureless = 16 * st.texture < p.min_texture_q4() * (2 * bs * (bs - 1)) as u64;
                     let validity = if textureless {
                         Validity::Textureless
                     } else if self.flags[i].0 {
@@ -189,11 +191,10 @@ impl FlowEngine for CpuFlow {
                     } else {
                         Validity::Valid
                     };
-                    let (d, blk, hb) = (found.d, &self.block_buf, &lev.hp_b);
-                    let s = |e: (i32, i32)| win.contains(e).then(|| ssd(blk, hb, x0, y0, bs, e));
-                    let s0 = ssd(blk, hb, x0, y0, bs, d);
-                    let du = parabola(s((d.0 - 1, d.1)), s0, s((d.0 + 1, d.1)));
-                    let dv = parabola(s((d.0, d.1 - 1)), s0, s((d.0, d.1 + 1)));
+                    let d = found.d;
+                    let [xm, xp, ym, yp] = st.ssd_neighbours;
+                    let du = parabola(xm, st.ssd, xp);
+                    let dv = parabola(ym, st.ssd, yp);
                     self.field.vectors.push(FlowVector {
                         x: (ox + bs / 2) as f32,
                         y: (oy + bs / 2) as f32,
@@ -291,15 +292,81 @@ pub(crate) fn copy_block(img: &LumaImage, x0: usize, y0: usize, block: usize, ou
     }
 }
 
+/// Level-0 block statistics: texture (gradient energy) and the SSDs for the sub-pixel fit.
+pub(crate) struct Stats {
+    pub texture: u64,
+    /// SSD at the best displacement.
+    pub ssd: u64,
+    /// SSD at d − (1,0), d + (1,0), d − (0,1), d + (0,1); `None` outside the window.
+    pub ssd_neighbours: [Option<u64>; 4],
+}
+
+/// [`Stats`] of the block `a` at (x0, y0) matched at `d` in `b`; compiled for AVX2 when the
+/// search kernel is AVX2 (the sums then vectorise 256 bits wide).
+#[allow(clippy::too_many_arguments)]
+fn level0_stats(
+    kernel: Kernel,
+    a: &[u8],
+    b: &LumaImage,
+    x0: usize,
+    y0: usize,
+    block: usize,
+    win: &Window,
+    d: (i32, i32),
+) -> Stats {
+    #[cfg(target_arch = "x86_64")]
+    if kernel == Kernel::Avx2 {
+        // SAFETY: an AVX2 kernel is only constructed where the CPU supports AVX2.
+        return unsafe { level0_stats_avx2(a, b, x0, y0, block, win, d) };
+    }
+    let _ = kernel;
+    level0_stats_impl(a, b, x0, y0, block, win, d)
+}
+
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn level0_stats_avx2(
+    a: &[u8],
+    b: &LumaImage,
+    x0: usize,
+    y0: usize,
+    block: usize,
+    win: &Window,
+    d: (i32, i32),
+) -> Stats {
+    level0_stats_impl(a, b, x0, y0, block, win, d)
+}
+
+#[inline(always)]
+fn level0_stats_impl(
+    a: &[u8],
+    b: &LumaImage,
+    x0: usize,
+    y0: usize,
+    block: usize,
+    win: &Window,
+    d: (i32, i32),
+) -> Stats {
+    let s = |e: (i32, i32)| win.contains(e).then(|| ssd(a, b, x0, y0, block, e));
+    Stats {
+        texture: texture(a, block),
+        ssd: ssd(a, b, x0, y0, block, d),
+        ssd_neighbours: [s((d.0 - 1, d.1)), s((d.0 + 1, d.1)), s((d.0, d.1 - 1)), s((d.0, d.1 + 1))],
+    }
+}
+
 /// Gradient energy of a block: Σ|a(x+1,y) − a(x,y)| + Σ|a(x,y+1) − a(x,y)|.
+#[inline(always)]
 pub(crate) fn texture(a: &[u8], block: usize) -> u64 {
     let mut g = 0u64;
     for y in 0..block {
         let row = &a[y * block..(y + 1) * block];
-        g += row.windows(2).map(|p| u64::from(p[0].abs_diff(p[1]))).sum::<u64>();
+        g += u64::from(row.windows(2).map(|p| u32::from(p[0].abs_diff(p[1]))).sum::<u32>());
         if y + 1 < block {
             let next = &a[(y + 1) * block..(y + 2) * block];
-            g += row.iter().zip(next).map(|(&p, &q)| u64::from(p.abs_diff(q))).sum::<u64>();
+            g += u64::from(row.iter().zip(next).map(|(&p, &q)| u32::from(p.abs_diff(q))).sum::<u32>());
         }
     }
     g
@@ -308,6 +375,7 @@ pub(crate) fn texture(a: &[u8], block: usize) -> u64 {
 /// Sum of squared differences between block `a` and the block of `b` at (x0+dx, y0+dy): the
 /// cost the sub-pixel fit uses (SSD is quadratic in a small shift, SAD is V-shaped and would
 /// bias a parabola towards the integer).
+#[inline(always)]
 pub(crate) fn ssd(a: &[u8], b: &LumaImage, x0: usize, y0: usize, block: usize, d: (i32, i32)) -> u64 {
     let (bx, by) = ((x0 as i32 + d.0) as usize, (y0 as i32 + d.1) as usize);
     let mut s = 0u64;
@@ -333,30 +401,79 @@ pub(crate) fn parabola(sm: Option<u64>, s0: u64, sp: Option<u64>) -> f64 {
     }
 }
 
-/// Searches the window for the block `a` (prefiltered, contiguous) in `b` (prefiltered frame B
-/// of the same level); see the module docs for why early termination gives the exhaustive
-/// answer.
-#[allow(clippy::too_many_arguments)]
-fn search(
-    kernel: Kernel,
-    a: &[u8],
-    b: &LumaImage,
-    x0: usize,
-    y0: usize,
-    block: usize,
-    win: &Window,
-    preds: &[Option<(i32, i32)>],
-    amb_q8: u64,
-    costs: &mut Vec<u32>,
-) -> Found {
+/// One block's search at one level: the block `a` (prefiltered, rows contiguous) at (x0, y0)
+/// in frame A, searched for in `b` (prefiltered frame B of the same level) over `win`.
+pub(crate) struct Query<'a> {
+    pub a: &'a [u8],
+    pub b: &'a LumaImage,
+    pub x0: usize,
+    pub y0: usize,
+    pub block: usize,
+    pub win: Window,
+    /// Displacements evaluated first to tighten the early-termination bound.
+    pub preds: [Option<(i32, i32)>; 3],
+    pub amb_q8: u64,
+}
+
+/// Searches with the given kernel; see the module docs for why early termination gives the
+/// exhaustive answer.
+fn search(kernel: Kernel, q: &Query, costs: &mut Vec<u32>) -> Found {
+    assert!(kernel.supports(q.block), "kernel {kernel:?} cannot run {} px blocks", q.block);
+    match kernel {
+        // SAFETY: AVX2 support was checked just above.
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Avx2 => unsafe { search_avx2(q, costs) },
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Sse2 => search_with::<sad::Sse2Sad>(q, costs),
+        _ => search_with::<sad::ScalarSad>(q, costs),
+    }
+}
+
+/// [`search_with`] compiled with AVX2 enabled, so that the AVX2 kernel inlines into the loop.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn search_avx2(q: &Query, costs: &mut Vec<u32>) -> Found {
+    search_with::<sad::Avx2Sad>(q, costs)
+}
+
+#[inline(always)]
+fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
+    let (a, b, x0, y0, block, win) = (q.a, q.b, q.x0, q.y0, q.block, &q.win);
     let stride = b.width();
     let data = b.data();
     let gw = win.width();
     let gh = (win.hi.1 - win.lo.1 + 1) as usize;
     costs.clear();
     costs.resize(gw * gh, PENDING);
+    // Candidates whose full cost is known, in evaluation order (the rest were abandoned).
+    let mut done: [(i32, i32); 64] = [(0, 0); 64];
+    let mut ndone = 0usize;
+    let mut overflow = false;
+    let mut note = |d: (i32, i32)| {
+        if ndone < done.len() {
+            done[ndone] = d;
+            ndone += 1;
+        } else {
+            overflow = true;
+        }
+    };
     let offset = |d: (i32, i32)| (y0 as i32 + d.1) as usize * stride + (x0 as i32 + d.0) as usize;
-    let bound = |best: u32| (u64::from(best) * (256 + amb_q8) / 256).min(u64::from(PENDING - 1)) as u32;
+    // Every candidate window lies between these two, all inside frame B.
+    assert!(a.len() >= block * block && y0 as i32 + win.lo.1 >= 0 && x0 as i32 + win.lo.0 >= 0);
+    assert!(offset(win.hi) + (block - 1) * stride + block <= data.len(), "search window outside frame B");
+    // A macro, not a closure: closures do not inherit `search_avx2`'s target features, so the
+    // AVX2 kernel would not inline into one.
+    macro_rules! sad {
+        ($d:expr, $limit:expr) => {
+            // SAFETY: the displacement lies in the window, whose blocks are all inside `data`
+            // (asserted above), and `search` checked that the CPU supports the kernel.
+            unsafe { S::sad(a.as_ptr(), data.as_ptr().add(offset($d)), stride, block, $limit) }
+        };
+    }
+    let bound = |best: u32| (u64::from(best) * (256 + q.amb_q8) / 256).min(u64::from(PENDING - 1)) as u32;
 
     let mut best = (u32::MAX, (i32::MAX, i32::MAX, i32::MAX), (0, 0));
     let consider = |d: (i32, i32), c: u32, best: &mut (u32, (i32, i32, i32), (i32, i32))| {
@@ -365,13 +482,15 @@ fn search(
             *best = cand;
         }
     };
-    for d in preds.iter().flatten().copied() {
+    for d in q.preds.iter().flatten().copied() {
         if win.contains(d) && costs[win.index(d)] == PENDING {
-            let c = kernel.sad(a, data, offset(d), stride, block, u32::MAX).expect("no limit");
+            let c = sad!(d, u32::MAX).expect("no limit");
             costs[win.index(d)] = c;
+            note(d);
             consider(d, c, &mut best);
         }
     }
+    let mut limit = bound(best.0);
     for dy in win.lo.1..=win.hi.1 {
         let row = (dy - win.lo.1) as usize * gw;
         for dx in win.lo.0..=win.hi.0 {
@@ -379,11 +498,12 @@ fn search(
             if costs[gi] != PENDING {
                 continue;
             }
-            let limit = if best.0 == u32::MAX { u32::MAX } else { bound(best.0) };
-            match kernel.sad(a, data, offset((dx, dy)), stride, block, limit) {
+            match sad!((dx, dy), limit) {
                 Some(c) => {
                     costs[gi] = c;
+                    note((dx, dy));
                     consider((dx, dy), c, &mut best);
+                    limit = bound(best.0);
                 }
                 None => costs[gi] = ABANDONED,
             }
@@ -392,31 +512,24 @@ fn search(
     let (c1, _, d1) = best;
 
     let edge = d1.0 == win.lo.0 || d1.0 == win.hi.0 || d1.1 == win.lo.1 || d1.1 == win.hi.1;
-    let thr = u64::from(c1) * (256 + amb_q8);
-    let mut ambiguous = false;
-    'scan: for gy in 0..gh {
-        for gx in 0..gw {
-            let c = costs[gy * gw + gx];
-            if c == ABANDONED || u64::from(c) * 256 > thr {
-                continue;
-            }
-            let d = (win.lo.0 + gx as i32, win.lo.1 + gy as i32);
-            if (d.0 - d1.0).abs().max((d.1 - d1.1).abs()) < 2 {
-                continue;
-            }
-            let is_min = (-1..=1).all(|ny: i32| {
-                (-1..=1).all(|nx: i32| {
-                    let e = (d.0 + nx, d.1 + ny);
-                    !win.contains(e) || costs[win.index(e)] >= c
-                })
-            });
-            if is_min {
-                ambiguous = true;
-                break 'scan;
-            }
+    let thr = u64::from(c1) * (256 + q.amb_q8);
+    let is_competitor = |d: (i32, i32)| {
+        let c = costs[win.index(d)];
+        if c == ABANDONED || u64::from(c) * 256 > thr || (d.0 - d1.0).abs().max((d.1 - d1.1).abs()) < 2 {
+            return false;
         }
-    }
-
+        (-1..=1).all(|ny: i32| {
+            (-1..=1).all(|nx: i32| {
+                let e = (d.0 + nx, d.1 + ny);
+                !win.contains(e) || costs[win.index(e)] >= c
+            })
+        })
+    };
+    let ambiguous = if overflow {
+        (win.lo.1..=win.hi.1).any(|dy| (win.lo.0..=win.hi.0).any(|dx| is_competitor((dx, dy))))
+    } else {
+        done[..ndone].iter().any(|&d| is_competitor(d))
+    };
     Found { d: d1, cost: c1, edge, ambiguous }
 }
 

@@ -12,12 +12,18 @@
 //! | [`prefilter`] | the local-mean high-pass that makes SAD tolerant to exposure changes; 2×2 pyramid |
 //! | [`sad`] | sum-of-absolute-differences kernels (AVX2 / SSE2 / scalar) with early termination |
 //! | [`cpu`] | [`cpu::CpuFlow`], the fast CPU engine |
+//! | [`gpu`] | [`gpu::GpuFlow`], the wgpu compute-shader engine (same results as the CPU engine) |
+//! | `backend` | [`create_engine`]: `flow.backend` = auto / cpu / gpu, with a [`BackendReport`] |
 //! | [`reference`] | [`reference::reference_flow`], the contract written as plainly as possible |
 
+mod backend;
 pub mod cpu;
+pub mod gpu;
 pub mod prefilter;
 pub mod reference;
 pub mod sad;
+
+pub use backend::{BackendReport, create_engine};
 
 use crate::config::ConfigError;
 use hal::LumaImage;
@@ -121,9 +127,16 @@ pub enum Placement {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct FlowParams {
-    /// Grid rows × cols of blocks spread uniformly over the frame (paper: 16 × 16).
+    /// Grid rows × cols of blocks spread uniformly over the frame (paper: 16 × 16). Ignored
+    /// when `stride` is set.
     pub rows: usize,
     pub cols: usize,
+    /// Dense mode: when set, the grid is derived from the frame size instead of `rows`/`cols`:
+    /// one block per `stride` px, rounded down to a multiple of 8 in each direction (see
+    /// [`FlowParams::grid`]), so the OFFIS 8×8 matrices aggregate it. E.g. 8 at 1280×720 gives
+    /// 88 × 160 blocks. Requires `placement = "spread"`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stride: Option<usize>,
     /// Block side, pixels (paper: 32).
     pub block: usize,
     /// Search radius, pixels: displacements in [-radius, radius]² are tried.
@@ -153,6 +166,7 @@ impl Default for FlowParams {
         Self {
             rows: 16,
             cols: 16,
+            stride: None,
             block: 32,
             radius: 16,
             backend: Backend::Auto,
@@ -167,6 +181,16 @@ impl Default for FlowParams {
 }
 
 impl FlowParams {
+    /// The grid (rows, cols) for a `width × height` frame: `(rows, cols)` as configured, or in
+    /// dense mode (`stride = Some(s)`) rows = 8·⌊⌊H/s⌋/8⌋ and cols = 8·⌊⌊W/s⌋/8⌋ (0 when the
+    /// frame holds fewer than 8 cells of `s` px; [`check_frames`] rejects that).
+    pub fn grid(&self, width: usize, height: usize) -> (usize, usize) {
+        match self.stride {
+            Some(s) if s > 0 => (height / s / 8 * 8, width / s / 8 * 8),
+            _ => (self.rows, self.cols),
+        }
+    }
+
     /// `min_texture` in sixteenths of a grey level, as the contract compares it.
     pub fn min_texture_q4(&self) -> u64 {
         (f64::from(self.min_texture) * 16.0).round().max(0.0) as u64
@@ -201,6 +225,10 @@ pub enum FlowError {
         width: usize,
         height: usize,
     },
+    #[error(
+        "dense mode with flow.stride = {stride} gives fewer than 8 blocks per row or column on a {width}x{height} frame; use a smaller flow.stride (at most {max_stride})"
+    )]
+    StrideTooLarge { stride: usize, width: usize, height: usize, max_stride: usize },
     #[error("invalid flow parameters: {0}")]
     Params(#[from] ConfigError),
     #[error("flow backend {0} is not available: {1}")]
@@ -218,16 +246,9 @@ pub trait FlowEngine: Send {
     fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError>;
 }
 
-/// The engine for `params.backend`: `auto` and `cpu` give the CPU engine; `gpu` fails with
-/// [`FlowError::BackendUnavailable`] while no GPU engine is compiled into this build.
+/// The engine for `params.backend` ([`create_engine`] without the report, which it logs).
 pub fn engine(params: &FlowParams) -> Result<Box<dyn FlowEngine>, FlowError> {
-    match params.backend {
-        Backend::Auto | Backend::Cpu => Ok(Box::new(cpu::CpuFlow::new(params.clone())?)),
-        Backend::Gpu => Err(FlowError::BackendUnavailable(
-            "gpu",
-            "the GPU flow engine is not compiled into this build; use --flow-backend cpu or auto".into(),
-        )),
-    }
+    create_engine(params).map(|(engine, _)| engine)
 }
 
 /// Checks that a frame pair can be processed with `params`: same size, large enough for the
@@ -242,6 +263,12 @@ pub fn check_frames(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Result
         });
     }
     let (w, h) = (a.width(), a.height());
+    if let Some(stride) = params.stride {
+        let (rows, cols) = params.grid(w, h);
+        if rows == 0 || cols == 0 {
+            return Err(FlowError::StrideTooLarge { stride, width: w, height: h, max_stride: (w.min(h) / 8).max(1) });
+        }
+    }
     let levels = params.pyramid_levels.max(1);
     for l in 0..levels {
         let (wl, hl) = (w >> l, h >> l);
@@ -275,7 +302,8 @@ pub fn level_block(block: usize, l: usize) -> usize {
     (block >> l).max(block.min(8))
 }
 
-/// Top-left pixel (x0, y0) in frame A of every block, row-major (`rows × cols`).
+/// Top-left pixel (x0, y0) in frame A of every block, row-major (`rows × cols` of
+/// [`FlowParams::grid`]).
 ///
 /// `Spread`: x0 = clamp(floor((2c+1)·W / (2·cols)) − B/2, 0, W − B), likewise y0 with rows
 /// and H: each block is centred on the centre pixel of its cell, pushed inside the frame when
@@ -284,12 +312,13 @@ pub fn level_block(block: usize, l: usize) -> usize {
 /// centre pixel (x0 + B/2, y0 + B/2), as in the data sets' `blocks32_tile.csv`.
 pub fn block_origins(params: &FlowParams, width: usize, height: usize) -> Vec<(usize, usize)> {
     let b = params.block;
+    let (rows, cols) = params.grid(width, height);
     let spread = |i: usize, n: usize, len: usize| ((2 * i + 1) * len / (2 * n)).saturating_sub(b / 2).min(len - b);
-    let mut out = Vec::with_capacity(params.rows * params.cols);
-    for r in 0..params.rows {
-        for c in 0..params.cols {
+    let mut out = Vec::with_capacity(rows * cols);
+    for r in 0..rows {
+        for c in 0..cols {
             out.push(match params.placement {
-                Placement::Spread => (spread(c, params.cols, width), spread(r, params.rows, height)),
+                Placement::Spread => (spread(c, cols, width), spread(r, rows, height)),
                 Placement::Tile => (c * b, r * b),
             });
         }

@@ -27,19 +27,39 @@ pub fn highpass(src: &LumaImage, k: usize, dst: &mut LumaImage, scratch: &mut Sc
     dst.resize(src.width(), src.height());
     match k {
         0 => dst.data_mut().copy_from_slice(src.data()),
-        1 => highpass_k::<1>(src, dst, scratch),
-        2 => highpass_k::<2>(src, dst, scratch),
-        3 => highpass_k::<3>(src, dst, scratch),
-        4 => highpass_k::<4>(src, dst, scratch),
-        5 => highpass_k::<5>(src, dst, scratch),
-        6 => highpass_k::<6>(src, dst, scratch),
-        7 => highpass_k::<7>(src, dst, scratch),
+        1 => highpass_dispatch::<1>(src, dst, scratch),
+        2 => highpass_dispatch::<2>(src, dst, scratch),
+        3 => highpass_dispatch::<3>(src, dst, scratch),
+        4 => highpass_dispatch::<4>(src, dst, scratch),
+        5 => highpass_dispatch::<5>(src, dst, scratch),
+        6 => highpass_dispatch::<6>(src, dst, scratch),
+        7 => highpass_dispatch::<7>(src, dst, scratch),
         _ => panic!("prefilter radius {k} > {MAX_RADIUS}; FlowParams::validate rejects it"),
     }
 }
 
+/// Runs [`highpass_k`] compiled for AVX2 where the CPU has it (twice the vector width of the
+/// x86-64 baseline), else for the baseline.
+fn highpass_dispatch<const K: usize>(src: &LumaImage, dst: &mut LumaImage, scratch: &mut Scratch) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: AVX2 is present.
+        return unsafe { highpass_k_avx2::<K>(src, dst, scratch) };
+    }
+    highpass_k::<K>(src, dst, scratch)
+}
+
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn highpass_k_avx2<const K: usize>(src: &LumaImage, dst: &mut LumaImage, scratch: &mut Scratch) {
+    highpass_k::<K>(src, dst, scratch)
+}
+
 /// Monomorphised per radius so that the division by the constant window area compiles to a
 /// vectorised multiply-high.
+#[inline(always)]
 fn highpass_k<const K: usize>(src: &LumaImage, dst: &mut LumaImage, scratch: &mut Scratch) {
     let (w, h) = (src.width(), src.height());
     if w == 0 || h == 0 {

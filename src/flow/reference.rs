@@ -33,8 +33,8 @@ pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Resu
 
     let origins = super::block_origins(params, a.width(), a.height());
     let q8 = params.ambiguity_q8() as i64;
-    let mut field =
-        FlowField { rows: params.rows, cols: params.cols, width: a.width(), height: a.height(), vectors: vec![] };
+    let (rows, cols) = params.grid(a.width(), a.height());
+    let mut field = FlowField { rows, cols, width: a.width(), height: a.height(), vectors: vec![] };
     let n = origins.len();
     let (mut d_all, mut edge_all, mut amb_all) = (vec![(0i64, 0i64); n], vec![false; n], vec![false; n]);
     let mut last = vec![None; n];
@@ -52,12 +52,12 @@ pub fn reference_flow(params: &FlowParams, a: &LumaImage, b: &LumaImage) -> Resu
                 ((0, 0), params.radius as i64)
             } else {
                 // Lower median of the 3×3 grid neighbourhood at the coarser level, doubled.
-                let (br, bc) = (i / params.cols, i % params.cols);
+                let (br, bc) = (i / cols, i % cols);
                 let (mut xs, mut ys) = (vec![], vec![]);
-                for rr in br.saturating_sub(1)..=(br + 1).min(params.rows - 1) {
-                    for cc in bc.saturating_sub(1)..=(bc + 1).min(params.cols - 1) {
-                        xs.push(coarse[rr * params.cols + cc].0);
-                        ys.push(coarse[rr * params.cols + cc].1);
+                for rr in br.saturating_sub(1)..=(br + 1).min(rows - 1) {
+                    for cc in bc.saturating_sub(1)..=(bc + 1).min(cols - 1) {
+                        xs.push(coarse[rr * cols + cc].0);
+                        ys.push(coarse[rr * cols + cc].1);
                     }
                 }
                 xs.sort();

@@ -96,6 +96,56 @@ impl Kernel {
     }
 }
 
+/// A SAD kernel as a type, so that a search loop can be compiled once per kernel with the
+/// kernel inlined (the AVX2 instance inside an AVX2-enabled function).
+pub trait SadFn {
+    /// SAD of the `block`×`block` block at `a` (rows `block` bytes apart) and the window at `b`
+    /// (rows `stride` bytes apart), with early termination as in [`Kernel::sad`].
+    ///
+    /// # Safety
+    /// Both regions must be readable; the CPU must support the kernel and the block width
+    /// ([`Kernel::supports`]).
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32>;
+}
+
+/// [`Kernel::Avx2`] as a type.
+#[cfg(target_arch = "x86_64")]
+pub struct Avx2Sad;
+/// [`Kernel::Sse2`] as a type.
+#[cfg(target_arch = "x86_64")]
+pub struct Sse2Sad;
+/// [`Kernel::Scalar`] as a type.
+pub struct ScalarSad;
+
+#[cfg(target_arch = "x86_64")]
+impl SadFn for Avx2Sad {
+    #[inline(always)]
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY: forwarded caller contract.
+        unsafe { x86::sad_avx2_inl(a, b, stride, block, limit) }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl SadFn for Sse2Sad {
+    #[inline(always)]
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY: forwarded caller contract.
+        unsafe { x86::sad_sse2(a, b, stride, block, limit) }
+    }
+}
+
+impl SadFn for ScalarSad {
+    #[inline(always)]
+    unsafe fn sad(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY: the caller guarantees block*block bytes at `a` and the window at `b`.
+        let (a, img) = unsafe {
+            (std::slice::from_raw_parts(a, block * block), std::slice::from_raw_parts(b, (block - 1) * stride + block))
+        };
+        sad_scalar(a, img, 0, stride, block, limit)
+    }
+}
+
 /// Portable SAD with the same early-termination checkpoints as the SIMD kernels.
 pub fn sad_scalar(a: &[u8], img: &[u8], off: usize, stride: usize, block: usize, limit: u32) -> Option<u32> {
     let mut total = 0u32;
@@ -115,12 +165,20 @@ mod x86 {
     use super::CHECK_ROWS;
     use std::arch::x86_64::*;
 
-    #[target_feature(enable = "avx2")]
-    #[inline]
-    fn hsum256(v: __m256i) -> u32 {
-        let s = _mm_add_epi64(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
-        let s = _mm_add_epi64(s, _mm_unpackhi_epi64(s, s));
-        _mm_cvtsi128_si32(s) as u32
+    // The `#[inline(always)]` helpers below carry no `target_feature` themselves: they are
+    // inlined into AVX2-enabled callers (`sad_avx2`, `cpu::search_avx2`), where the intrinsics
+    // then inline too. Callers must ensure AVX2 is present.
+
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    unsafe fn hsum256(v: __m256i) -> u32 {
+        // SAFETY: caller guarantees AVX2.
+        unsafe {
+            let s = _mm_add_epi64(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+            let s = _mm_add_epi64(s, _mm_unpackhi_epi64(s, s));
+            _mm_cvtsi128_si32(s) as u32
+        }
     }
 
     /// # Safety
@@ -128,7 +186,17 @@ mod x86 {
     /// `block` rows of `block` readable bytes, `stride` apart. `block.is_multiple_of(32)`.
     #[target_feature(enable = "avx2")]
     pub unsafe fn sad_avx2(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
-        // SAFETY (whole body): the caller guarantees every address read here is in bounds.
+        // SAFETY: same contract.
+        unsafe { sad_avx2_inl(a, b, stride, block, limit) }
+    }
+
+    /// [`sad_avx2`] for inlining into AVX2-enabled callers.
+    ///
+    /// # Safety
+    /// As [`sad_avx2`].
+    #[inline(always)]
+    pub unsafe fn sad_avx2_inl(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
+        // SAFETY (whole body): the caller guarantees AVX2 and that every address read is in bounds.
         unsafe {
             if block == 32 {
                 return sad_avx2_32(a, b, stride, limit);
@@ -160,7 +228,10 @@ mod x86 {
 
     /// The default 32-pixel block: one `vpsadbw` per row, two accumulators, fully unrolled
     /// between checkpoints.
-    #[target_feature(enable = "avx2")]
+    ///
+    /// # Safety
+    /// As [`sad_avx2`] with `block == 32`.
+    #[inline(always)]
     unsafe fn sad_avx2_32(a: *const u8, b: *const u8, stride: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): 32 rows of 32 bytes at `a` (stride 32) and `b` (stride `stride`).
         unsafe {
@@ -190,6 +261,7 @@ mod x86 {
 
     /// # Safety
     /// As [`sad_avx2`] with `block.is_multiple_of(16)`; SSE2 is always present on x86-64.
+    #[inline]
     pub unsafe fn sad_sse2(a: *const u8, b: *const u8, stride: usize, block: usize, limit: u32) -> Option<u32> {
         // SAFETY (whole body): the caller guarantees every address read here is in bounds.
         unsafe {

@@ -1,0 +1,103 @@
+//! CPU and GPU flow engines at 1280×720 (C310 resolution) on the same frame pair: the graf
+//! texture (shared/data/graf_shift_512) mirrored-tiled to 1280×720, frame B translated by
+//! (5, −3) px. Two grids: the default (16×16 blocks of 32 px, radius 16) and dense mode
+//! (`stride = 8`: 88×160 blocks of 32 px, radius 16).
+//!
+//! GPU timings include upload, preprocessing and readback (`compute`, waits for its result);
+//! `gpu_stream` uses `compute_pipelined` on a video-like stream (frame A = previous frame B, not
+//! re-uploaded; the result of pair n is read while pair n+1 runs).
+//!
+//! `cargo bench --bench flow_gpu` — the GPU is the first adapter wgpu finds (hardware first;
+//! `WGPU_BACKEND=vulkan|metal|dx12|gl` to choose). On a software adapter (lavapipe/llvmpipe)
+//! dense mode takes tens of seconds per frame, so it is only run there with
+//! `FLOWNAV_BENCH_SOFTWARE_DENSE=1`. Set FLOWNAV_DATA if the data folder is not found.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use flownav::flow::cpu::CpuFlow;
+use flownav::flow::gpu::{self, GpuContext, GpuFlow};
+use flownav::flow::{FlowEngine, FlowParams};
+use hal::LumaImage;
+use std::hint::black_box;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+fn graf() -> LumaImage {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let candidates: Vec<PathBuf> = std::env::var_os("FLOWNAV_DATA")
+        .map(PathBuf::from)
+        .into_iter()
+        .chain([root.join("data"), root.join("../shared/data"), root.join("../../shared/data")])
+        .collect();
+    let path = candidates
+        .iter()
+        .map(|d| d.join("graf_shift_512/0000.png"))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| panic!("graf_shift_512/0000.png not found in {candidates:?}; set FLOWNAV_DATA"));
+    flownav::frames::load_luma(path).unwrap()
+}
+
+/// `src` mirrored-tiled to 1280×720 and shifted by (dx, dy).
+fn tiled(src: &LumaImage, dx: i64, dy: i64) -> LumaImage {
+    let (w, h) = (src.width() as i64, src.height() as i64);
+    let mirror = |i: i64, n: i64| {
+        let m = i.rem_euclid(2 * n);
+        (if m < n { m } else { 2 * n - 1 - m }) as usize
+    };
+    LumaImage::from_fn(1280, 720, |x, y| src.get(mirror(x as i64 - dx, w), mirror(y as i64 - dy, h)))
+}
+
+fn bench(c: &mut Criterion) {
+    let src = graf();
+    let (a, b) = (tiled(&src, 0, 0), tiled(&src, 5, -3));
+    let ctx = match GpuContext::any() {
+        Ok(ctx) => Some(Arc::new(ctx)),
+        Err(e) => {
+            eprintln!("no GPU adapter, benchmarking the CPU engine only: {e}");
+            None
+        }
+    };
+    let software = ctx.as_ref().is_some_and(|c| !gpu::is_hardware(c.info()));
+    if let Some(ctx) = &ctx {
+        eprintln!("GPU: {}", gpu::describe_adapter(ctx.info()));
+    }
+    let default = FlowParams::default();
+    let dense = FlowParams { stride: Some(8), ..FlowParams::default() };
+    assert_eq!(dense.grid(1280, 720), (88, 160));
+
+    let mut g = c.benchmark_group("flow_gpu_720p");
+    g.sample_size(10).warm_up_time(Duration::from_secs(1));
+    for (name, params) in [("default", &default), ("dense", &dense)] {
+        let mut cpu = CpuFlow::new(params.clone()).unwrap();
+        g.bench_function(format!("cpu/{name}"), |bch| {
+            bch.iter(|| black_box(cpu.compute(&a, &b).unwrap().valid_count()))
+        });
+        let Some(ctx) = &ctx else { continue };
+        if name == "dense" && software && std::env::var_os("FLOWNAV_BENCH_SOFTWARE_DENSE").is_none() {
+            eprintln!("skipping gpu/dense on a software adapter (set FLOWNAV_BENCH_SOFTWARE_DENSE=1 to run it)");
+            continue;
+        }
+        let mut engine = GpuFlow::new(Arc::clone(ctx), params.clone()).unwrap();
+        // Parity on the benchmark frames, and the warm-up that compiles the pipelines.
+        let expected = cpu.compute(&a, &b).unwrap().clone();
+        assert_eq!(engine.compute(&a, &b).unwrap().vectors.len(), expected.vectors.len());
+        g.bench_function(format!("gpu/{name}"), |bch| {
+            bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
+        });
+        // A stream alternating a, b, a, b: each pair's A is the previous pair's B.
+        let frames = [&a, &b];
+        let mut i = 0usize;
+        g.bench_function(format!("gpu_stream/{name}"), |bch| {
+            bch.iter(|| {
+                let (fa, fb) = (frames[i % 2], frames[(i + 1) % 2]);
+                i += 1;
+                black_box(engine.compute_pipelined(fa, fb).unwrap().map(|f| f.valid_count()))
+            })
+        });
+        engine.flush().unwrap();
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -1,0 +1,856 @@
+//! The GPU block-matching engine: the algorithm contract of `docs/flow.md` as wgpu compute
+//! shaders (Vulkan, Metal, DX12, GL), with the same integer results as [`super::cpu::CpuFlow`].
+//!
+//! Per frame pair, one command buffer:
+//! 1. the two frames are uploaded once, packed 8-bit (4 pixels per `u32` word, rows padded to
+//!    whole words); when frame A equals the previous pair's frame B (a video stream), A's
+//!    buffers are reused and only B is uploaded and preprocessed;
+//! 2. pyramid (2×2 average) and high-pass prefilter run on the GPU (`shaders/prep.wgsl`,
+//!    bit-identical to [`super::prefilter`]);
+//! 3. block matching, coarsest level first (`shaders/match.wgsl`): one workgroup per block, the
+//!    reference block and the search window of B cached in workgroup memory, every candidate's
+//!    exact SAD computed cooperatively, then workgroup reductions for the best candidate
+//!    (contract tie-break), the ambiguity test and, at level 0, the texture energy and the five
+//!    SSDs of the sub-pixel fit;
+//! 4. the level-0 records (10 integers per block) are copied into one of two staging buffers and
+//!    mapped; the CPU turns them into a [`FlowField`] with the same f64 parabola as the CPU
+//!    engine, so sub-pixel values are identical, not just close.
+//!
+//! Buffers, bind groups and pipelines are created once per frame size (pipelines once per
+//! block/radius shape) and reused. [`GpuFlow::compute`] (the [`FlowEngine`] method) waits for
+//! its own result; [`GpuFlow::compute_pipelined`] submits a pair and returns the previous pair's
+//! field, so the GPU computes frame n+1 while the CPU consumes frame n (one frame of latency).
+
+use super::{FlowEngine, FlowError, FlowField, FlowParams, FlowVector, Validity};
+use hal::LumaImage;
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Arc, Mutex, mpsc};
+
+const PREP_WGSL: &str = include_str!("shaders/prep.wgsl");
+const MATCH_WGSL: &str = include_str!("shaders/match.wgsl");
+/// 32-bit words per block in the level-0 result record (see `match.wgsl`).
+const RECORD: usize = 10;
+/// Workgroup size of the matching shader (capped by the device limit).
+const MATCH_WG: u32 = 256;
+/// Workgroup size (x) of the preprocessing shaders.
+const PREP_WG: u32 = 64;
+/// Most candidates one invocation accumulates per band (registers).
+const MAX_PER: u32 = 8;
+
+/// An adapter, its device and queue, shared by every GPU engine made from it.
+pub struct GpuContext {
+    info: wgpu::AdapterInfo,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    /// The first uncaptured wgpu error (validation, out of memory, device lost), if any.
+    error: Arc<Mutex<Option<String>>>,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuContext").field("adapter", &describe_adapter(&self.info)).finish()
+    }
+}
+
+/// A wgpu instance honouring `WGPU_BACKEND` (e.g. `vulkan`, `gl`) and the other `WGPU_*`
+/// environment variables.
+pub fn instance() -> wgpu::Instance {
+    wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env())
+}
+
+/// Every adapter the instance finds, hardware first (discrete, integrated, others).
+pub fn adapters(instance: &wgpu::Instance) -> Vec<wgpu::Adapter> {
+    let mut list = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+    list.sort_by_key(|a| adapter_rank(&a.get_info()));
+    list
+}
+
+/// Whether an adapter is real GPU hardware (not a CPU rasteriser such as llvmpipe/lavapipe or
+/// SwiftShader, which are far slower than the CPU engine).
+pub fn is_hardware(info: &wgpu::AdapterInfo) -> bool {
+    let name = info.name.to_ascii_lowercase();
+    let software = ["llvmpipe", "lavapipe", "swiftshader", "softpipe", "warp"].iter().any(|s| name.contains(s));
+    matches!(info.device_type, wgpu::DeviceType::DiscreteGpu | wgpu::DeviceType::IntegratedGpu) && !software
+}
+
+fn adapter_rank(info: &wgpu::AdapterInfo) -> u8 {
+    match info.device_type {
+        _ if !is_hardware(info) => 3,
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        _ => 2,
+    }
+}
+
+/// "NAME (TYPE, BACKEND, driver DRIVER)" for logs and reports.
+pub fn describe_adapter(info: &wgpu::AdapterInfo) -> String {
+    let kind = match info.device_type {
+        wgpu::DeviceType::DiscreteGpu => "discrete GPU",
+        wgpu::DeviceType::IntegratedGpu => "integrated GPU",
+        wgpu::DeviceType::VirtualGpu => "virtual GPU",
+        wgpu::DeviceType::Cpu => "software (CPU)",
+        wgpu::DeviceType::Other => "other",
+    };
+    let driver = if info.driver.is_empty() { String::new() } else { format!(", driver {}", info.driver) };
+    format!("{} ({kind}, {:?}{driver})", info.name, info.backend)
+}
+
+impl GpuContext {
+    /// Opens a device on `adapter` with the adapter's own limits.
+    pub fn new(adapter: &wgpu::Adapter) -> Result<Self, FlowError> {
+        let info = adapter.get_info();
+        let desc = wgpu::DeviceDescriptor {
+            label: Some("flownav flow"),
+            required_limits: adapter.limits(),
+            ..Default::default()
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&desc)).map_err(|e| {
+            FlowError::BackendUnavailable("gpu", format!("cannot open a device on {}: {e}", describe_adapter(&info)))
+        })?;
+        let error = Arc::new(Mutex::new(None));
+        let sink = Arc::clone(&error);
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+            tracing::error!("wgpu error: {e}");
+            let mut slot = sink.lock().unwrap_or_else(|p| p.into_inner());
+            slot.get_or_insert_with(|| e.to_string());
+        }));
+        Ok(Self { info, device, queue, error })
+    }
+
+    /// The first adapter found (hardware preferred), opened. Used by tests and `--flow-backend gpu`.
+    pub fn any() -> Result<Self, FlowError> {
+        let inst = instance();
+        let list = adapters(&inst);
+        let adapter = list.first().ok_or_else(no_adapter_error)?;
+        Self::new(adapter)
+    }
+
+    pub fn info(&self) -> &wgpu::AdapterInfo {
+        &self.info
+    }
+
+    fn take_error(&self) -> Option<String> {
+        self.error.lock().unwrap_or_else(|p| p.into_inner()).take()
+    }
+}
+
+/// The error for `--flow-backend gpu` when wgpu finds no adapter at all.
+pub fn no_adapter_error() -> FlowError {
+    let env = std::env::var("WGPU_BACKEND").map(|b| format!(" (WGPU_BACKEND={b})")).unwrap_or_default();
+    FlowError::BackendUnavailable(
+        "gpu",
+        format!(
+            "wgpu found no GPU adapter{env}; install your GPU's Vulkan/Metal/DX12 driver, or Mesa's software \
+             Vulkan for testing (`apt-get install mesa-vulkan-drivers libvulkan1`), or use --flow-backend cpu"
+        ),
+    )
+}
+
+fn gpu_err(what: impl std::fmt::Display) -> FlowError {
+    FlowError::BackendUnavailable("gpu", what.to_string())
+}
+
+/// `Lv` in the shaders: the dimensions and parameters of one pyramid level.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct LevelUniform {
+    w: u32,
+    h: u32,
+    ws: u32,
+    ws_src: u32,
+    k: u32,
+    n: u32,
+    rows: u32,
+    cols: u32,
+    coarsest: u32,
+    radius: u32,
+    q: u32,
+    level: u32,
+}
+
+/// The compile-time shape of a matching pipeline (constants prepended to `match.wgsl`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+struct MatchShape {
+    wg: u32,
+    block: u32,
+    /// Largest window side, 2ρ+1.
+    win: u32,
+    /// Candidate rows per band and block rows per chunk.
+    band: u32,
+    chunk: u32,
+    costs_in_workgroup: bool,
+    level0: bool,
+}
+
+impl MatchShape {
+    /// Chooses band and chunk so that the cached block rows and window fit `budget` bytes of
+    /// workgroup memory, minimising the words loaded per block.
+    fn plan(wg: u32, block: u32, radius: u32, level0: bool, budget: u32) -> Option<Self> {
+        let win = 2 * radius + 1;
+        let costs_bytes = 4 * win * win;
+        let costs_in_workgroup = costs_bytes <= budget / 2;
+        let avail = budget.saturating_sub(64 + if costs_in_workgroup { costs_bytes } else { 4 });
+        let aw = block.div_ceil(4);
+        let rw = Self::row_words(win, block);
+        let max_band = win.min(MAX_PER * wg / win).max(1);
+        let mut best: Option<(u64, u32, u32)> = None;
+        for band in 1..=max_band {
+            for chunk in 1..=block {
+                let words = chunk * aw + (chunk + band - 1) * rw;
+                if 4 * words > avail {
+                    continue;
+                }
+                let passes = u64::from(win.div_ceil(band) * block.div_ceil(chunk));
+                let cost = passes * (u64::from(words) + 256);
+                if best.is_none_or(|(c, _, _)| cost < c) {
+                    best = Some((cost, band, chunk));
+                }
+            }
+        }
+        let (_, band, chunk) = best?;
+        Some(Self { wg, block, win, band, chunk, costs_in_workgroup, level0 })
+    }
+
+    fn row_words(win: u32, block: u32) -> u32 {
+        (3 + win - 1 + 4 * (block.div_ceil(4) - 1)) / 4 + 2
+    }
+
+    fn source(&self) -> String {
+        let aw = self.block.div_ceil(4);
+        let per = (self.band * self.win).div_ceil(self.wg);
+        let rw = Self::row_words(self.win, self.block);
+        format!(
+            "const WG: u32 = {wg}u;\nconst BL: u32 = {bl}u;\nconst AW: u32 = {aw}u;\nconst AWF: u32 = {awf}u;\n\
+             const TAIL: bool = {tail};\nconst NXM: u32 = {win}u;\nconst NYM: u32 = {win}u;\nconst TY: u32 = {ty}u;\n\
+             const CH: u32 = {ch}u;\nconst NCH: u32 = {nch}u;\nconst RW: u32 = {rw}u;\nconst PER: u32 = {per}u;\n\
+             const SAN: u32 = {san}u;\nconst SBN: u32 = {sbn}u;\nconst WCN: u32 = {wcn}u;\n\
+             const COSTS_WG: bool = {cwg};\nconst IS_L0: bool = {l0};\n{body}",
+            wg = self.wg,
+            bl = self.block,
+            awf = self.block / 4,
+            tail = !self.block.is_multiple_of(4),
+            win = self.win,
+            ty = self.band,
+            ch = self.chunk,
+            nch = self.block.div_ceil(self.chunk),
+            san = self.chunk * aw,
+            sbn = (self.chunk + self.band - 1) * rw,
+            wcn = if self.costs_in_workgroup { self.win * self.win } else { 1 },
+            cwg = self.costs_in_workgroup,
+            l0 = self.level0,
+            body = MATCH_WGSL,
+        )
+    }
+}
+
+/// Pipelines and layouts that do not depend on the frame size.
+struct Pipelines {
+    prep_layout_colsum: wgpu::BindGroupLayout,
+    prep_layout_highpass: wgpu::BindGroupLayout,
+    prep_layout_down: wgpu::BindGroupLayout,
+    colsum: wgpu::ComputePipeline,
+    highpass: wgpu::ComputePipeline,
+    downsample: wgpu::ComputePipeline,
+    match_layout: wgpu::BindGroupLayout,
+    match_pipeline_layout: wgpu::PipelineLayout,
+    matchers: HashMap<MatchShape, wgpu::ComputePipeline>,
+}
+
+fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn uniform_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+/// Runs `f` inside a validation error scope, turning a shader or pipeline error into a
+/// [`FlowError`] instead of a panic.
+fn checked<T>(device: &wgpu::Device, what: &str, f: impl FnOnce() -> T) -> Result<T, FlowError> {
+    let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let out = f();
+    match pollster::block_on(scope.pop()) {
+        None => Ok(out),
+        Some(e) => Err(gpu_err(format!("{what}: {e}"))),
+    }
+}
+
+impl Pipelines {
+    fn new(device: &wgpu::Device) -> Result<Self, FlowError> {
+        checked(device, "building the preprocessing shaders", || {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("flow prep"),
+                source: wgpu::ShaderSource::Wgsl(PREP_WGSL.into()),
+            });
+            let layout = |label, entries: &[wgpu::BindGroupLayoutEntry]| {
+                device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(label), entries })
+            };
+            let prep_layout_colsum =
+                layout("flow colsum", &[uniform_entry(0), storage_entry(1, true), storage_entry(2, false)]);
+            let prep_layout_highpass = layout(
+                "flow highpass",
+                &[uniform_entry(0), storage_entry(1, true), storage_entry(3, true), storage_entry(4, false)],
+            );
+            let prep_layout_down =
+                layout("flow downsample", &[uniform_entry(0), storage_entry(1, true), storage_entry(4, false)]);
+            let pipeline = |bgl: &wgpu::BindGroupLayout, entry: &str| {
+                let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                    label: Some(entry),
+                    bind_group_layouts: &[Some(bgl)],
+                    immediate_size: 0,
+                });
+                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: Some(&pl),
+                    module: &module,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+            };
+            let colsum = pipeline(&prep_layout_colsum, "colsum");
+            let highpass = pipeline(&prep_layout_highpass, "highpass");
+            let downsample = pipeline(&prep_layout_down, "downsample");
+            let mut entries = vec![uniform_entry(0)];
+            entries.extend((1..=4).map(|b| storage_entry(b, true)));
+            entries.extend((5..=8).map(|b| storage_entry(b, false)));
+            let match_layout = layout("flow match", &entries);
+            let match_pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("flow match"),
+                bind_group_layouts: &[Some(&match_layout)],
+                immediate_size: 0,
+            });
+            Self {
+                prep_layout_colsum,
+                prep_layout_highpass,
+                prep_layout_down,
+                colsum,
+                highpass,
+                downsample,
+                match_layout,
+                match_pipeline_layout,
+                matchers: HashMap::new(),
+            }
+        })
+    }
+
+    fn matcher(&mut self, device: &wgpu::Device, shape: MatchShape) -> Result<(), FlowError> {
+        if self.matchers.contains_key(&shape) {
+            return Ok(());
+        }
+        let layout = &self.match_pipeline_layout;
+        let pipeline = checked(device, "building the block-matching shader", || {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("flow match"),
+                source: wgpu::ShaderSource::Wgsl(shape.source().into()),
+            });
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("flow match"),
+                layout: Some(layout),
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    zero_initialize_workgroup_memory: false,
+                    ..Default::default()
+                },
+                cache: None,
+            })
+        })?;
+        self.matchers.insert(shape, pipeline);
+        Ok(())
+    }
+}
+
+/// Buffers of one frame slot at one pyramid level.
+struct SlotLevel {
+    raw: wgpu::Buffer,
+    /// The prefiltered frame; `None` when `prefilter_radius` is 0 (matching reads `raw`).
+    hp: Option<wgpu::Buffer>,
+    down_bg: Option<wgpu::BindGroup>,
+    colsum_bg: Option<wgpu::BindGroup>,
+    highpass_bg: Option<wgpu::BindGroup>,
+}
+
+impl SlotLevel {
+    fn matched(&self) -> &wgpu::Buffer {
+        self.hp.as_ref().unwrap_or(&self.raw)
+    }
+}
+
+/// Everything that depends on the frame size.
+struct Sized {
+    width: usize,
+    height: usize,
+    rows: usize,
+    cols: usize,
+    origins: Vec<(usize, usize)>,
+    /// Per level: (width, height, words per row).
+    dims: Vec<(usize, usize, usize)>,
+    /// `slots[s][l]`: frame slot s (0/1) at level l.
+    slots: [Vec<SlotLevel>; 2],
+    /// `match_bgs[a][l]`: bind group for level l with frame A in slot a.
+    match_bgs: [Vec<wgpu::BindGroup>; 2],
+    shapes: Vec<MatchShape>,
+    result: wgpu::Buffer,
+    staging: [wgpu::Buffer; 2],
+    record_bytes: u64,
+}
+
+/// A submitted frame pair whose result has not been read yet.
+struct InFlight {
+    staging: usize,
+    submission: wgpu::SubmissionIndex,
+    mapped: mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+}
+
+/// The GPU engine. Construct once (per parameter set), then call [`FlowEngine::compute`] or
+/// [`GpuFlow::compute_pipelined`] per frame pair.
+pub struct GpuFlow {
+    ctx: Arc<GpuContext>,
+    params: FlowParams,
+    pipes: Pipelines,
+    sized: Option<Sized>,
+    field: FlowField,
+    pending: VecDeque<InFlight>,
+    submitted: u64,
+    /// Frame B of the last submitted pair and the slot it lives in (reused as the next A).
+    last_b: Vec<u8>,
+    last_b_slot: Option<usize>,
+    pack: Vec<u8>,
+    /// Whether the last pair reused the previous B as A (for tests and benchmarks).
+    reused_a: bool,
+}
+
+impl std::fmt::Debug for GpuFlow {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuFlow").field("ctx", &self.ctx).field("params", &self.params).finish_non_exhaustive()
+    }
+}
+
+impl GpuFlow {
+    /// An engine for `params` (validated here) on a shared GPU context.
+    pub fn new(ctx: Arc<GpuContext>, params: FlowParams) -> Result<Self, FlowError> {
+        params.validate()?;
+        let pipes = Pipelines::new(&ctx.device)?;
+        Ok(Self {
+            ctx,
+            params,
+            pipes,
+            sized: None,
+            field: FlowField::default(),
+            pending: VecDeque::new(),
+            submitted: 0,
+            last_b: Vec::new(),
+            last_b_slot: None,
+            pack: Vec::new(),
+            reused_a: false,
+        })
+    }
+
+    /// The adapter this engine runs on.
+    pub fn adapter(&self) -> &wgpu::AdapterInfo {
+        self.ctx.info()
+    }
+
+    /// The shared context (to build more engines on the same device).
+    pub fn context(&self) -> &Arc<GpuContext> {
+        &self.ctx
+    }
+
+    /// Whether the last submitted pair's frame A was recognised as the previous pair's frame B
+    /// and not uploaded or preprocessed again.
+    pub fn reused_frame_a(&self) -> bool {
+        self.reused_a
+    }
+
+    /// Submits the pair (`a`, `b`) and returns the field of the pair submitted before it (`None`
+    /// on the first call): the GPU computes this pair while the caller uses the previous one.
+    /// Latency is one frame pair; call [`GpuFlow::flush`] to get the last one.
+    pub fn compute_pipelined(&mut self, a: &LumaImage, b: &LumaImage) -> Result<Option<&FlowField>, FlowError> {
+        self.submit(a, b)?;
+        if self.pending.len() > 1 {
+            self.receive()?;
+            return Ok(Some(&self.field));
+        }
+        Ok(None)
+    }
+
+    /// Waits for the pair still in flight from [`GpuFlow::compute_pipelined`], if any, and
+    /// returns its field.
+    pub fn flush(&mut self) -> Result<Option<&FlowField>, FlowError> {
+        if self.pending.is_empty() {
+            return Ok(None);
+        }
+        while !self.pending.is_empty() {
+            self.receive()?;
+        }
+        Ok(Some(&self.field))
+    }
+
+    fn submit(&mut self, a: &LumaImage, b: &LumaImage) -> Result<(), FlowError> {
+        super::check_frames(&self.params, a, b)?;
+        let (w, h) = (a.width(), a.height());
+        if self.sized.as_ref().is_none_or(|s| (s.width, s.height) != (w, h)) {
+            while !self.pending.is_empty() {
+                self.receive()?;
+            }
+            self.sized = None;
+            self.last_b_slot = None;
+            self.sized = Some(self.build(w, h)?);
+        }
+        // Frame A is usually the previous pair's frame B: keep it on the GPU.
+        let (slot_a, upload_a) = match self.last_b_slot {
+            Some(s) if self.last_b.as_slice() == a.data() => (s, false),
+            _ => (0, true),
+        };
+        let slot_b = 1 - slot_a;
+        self.reused_a = !upload_a;
+        let ctx = Arc::clone(&self.ctx);
+        let sized = self.sized.as_ref().expect("built above");
+        if upload_a {
+            upload(&ctx.queue, &sized.slots[slot_a][0].raw, a, sized.dims[0].2, &mut self.pack);
+        }
+        upload(&ctx.queue, &sized.slots[slot_b][0].raw, b, sized.dims[0].2, &mut self.pack);
+        self.last_b.clear();
+        self.last_b.extend_from_slice(b.data());
+        self.last_b_slot = Some(slot_b);
+
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("flow") });
+        {
+            let mut pass =
+                enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("flow"), timestamp_writes: None });
+            let nlev = sized.dims.len();
+            for (s, upload) in [(slot_a, upload_a), (slot_b, true)] {
+                if !upload {
+                    continue;
+                }
+                for l in 0..nlev {
+                    let sl = &sized.slots[s][l];
+                    let (_, hl, ws) = sized.dims[l];
+                    let groups = (ws as u32).div_ceil(PREP_WG);
+                    if let Some(bg) = &sl.down_bg {
+                        pass.set_pipeline(&self.pipes.downsample);
+                        pass.set_bind_group(0, bg, &[]);
+                        pass.dispatch_workgroups(groups, hl as u32, 1);
+                    }
+                    if let (Some(cbg), Some(hbg)) = (&sl.colsum_bg, &sl.highpass_bg) {
+                        pass.set_pipeline(&self.pipes.colsum);
+                        pass.set_bind_group(0, cbg, &[]);
+                        pass.dispatch_workgroups(groups, hl as u32, 1);
+                        pass.set_pipeline(&self.pipes.highpass);
+                        pass.set_bind_group(0, hbg, &[]);
+                        pass.dispatch_workgroups(groups, hl as u32, 1);
+                    }
+                }
+            }
+            for l in (0..nlev).rev() {
+                pass.set_pipeline(&self.pipes.matchers[&sized.shapes[l]]);
+                pass.set_bind_group(0, &sized.match_bgs[slot_a][l], &[]);
+                pass.dispatch_workgroups(sized.cols as u32, sized.rows as u32, 1);
+            }
+        }
+        let staging = (self.submitted % 2) as usize;
+        enc.copy_buffer_to_buffer(&sized.result, 0, &sized.staging[staging], 0, sized.record_bytes);
+        let submission = ctx.queue.submit([enc.finish()]);
+        let (tx, rx) = mpsc::channel();
+        sized.staging[staging].map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.submitted += 1;
+        self.pending.push_back(InFlight { staging, submission, mapped: rx });
+        Ok(())
+    }
+
+    /// Waits for the oldest pair in flight and converts its records into `self.field`.
+    fn receive(&mut self) -> Result<(), FlowError> {
+        let job = self.pending.pop_front().expect("receive with a pair in flight");
+        let ctx = &self.ctx;
+        ctx.device
+            .poll(wgpu::PollType::Wait { submission_index: Some(job.submission), timeout: None })
+            .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
+        if let Some(e) = ctx.take_error() {
+            return Err(gpu_err(format!("the GPU flow computation failed: {e}")));
+        }
+        match job.mapped.try_recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(gpu_err(format!("reading the flow results back: {e}"))),
+            Err(_) => return Err(gpu_err("the GPU did not deliver the flow results")),
+        }
+        let sized = self.sized.as_ref().expect("pairs in flight imply buffers");
+        let buf = &sized.staging[job.staging];
+        {
+            let view = buf.get_mapped_range(..).map_err(|e| gpu_err(format!("mapping the flow results: {e}")))?;
+            let words: &[u32] = bytemuck::cast_slice(&view);
+            fill_field(&self.params, sized, words, &mut self.field);
+        }
+        buf.unmap();
+        Ok(())
+    }
+
+    /// Creates every size-dependent buffer and bind group.
+    fn build(&mut self, width: usize, height: usize) -> Result<Sized, FlowError> {
+        let p = &self.params;
+        let device = &self.ctx.device;
+        let limits = device.limits();
+        let (rows, cols) = p.grid(width, height);
+        let max_dim = limits.max_compute_workgroups_per_dimension as usize;
+        if rows > max_dim || cols > max_dim {
+            return Err(gpu_err(format!(
+                "a {rows}x{cols} grid exceeds this GPU's {max_dim} workgroups per dimension; use fewer rows/cols"
+            )));
+        }
+        let origins = super::block_origins(p, width, height);
+        let n = origins.len();
+        let nlev = p.pyramid_levels.max(1);
+        let k = p.prefilter_radius;
+        let wg = MATCH_WG.min(limits.max_compute_invocations_per_workgroup).min(limits.max_compute_workgroup_size_x);
+        let budget = limits.max_compute_workgroup_storage_size;
+        if limits.max_storage_buffers_per_shader_stage < 8 {
+            return Err(gpu_err(format!(
+                "the adapter allows {} storage buffers per shader stage; the flow shaders need 8",
+                limits.max_storage_buffers_per_shader_stage
+            )));
+        }
+
+        let dims: Vec<(usize, usize, usize)> =
+            (0..nlev).map(|l| ((width >> l), (height >> l), (width >> l).div_ceil(4))).collect();
+        let mut shapes = Vec::with_capacity(nlev);
+        for l in 0..nlev {
+            let bl = super::level_block(p.block, l) as u32;
+            let radius = if l == nlev - 1 { p.radius } else { p.refine_radius } as u32;
+            let shape = MatchShape::plan(wg, bl, radius, l == 0, budget).ok_or_else(|| {
+                gpu_err(format!(
+                    "{bl} px blocks at radius {radius} do not fit the GPU's {budget} bytes of workgroup memory"
+                ))
+            })?;
+            self.pipes.matcher(device, shape)?;
+            shapes.push(shape);
+        }
+        let gcost_words = shapes
+            .iter()
+            .filter(|s| !s.costs_in_workgroup)
+            .map(|s| (s.win * s.win) as u64 * n as u64)
+            .max()
+            .unwrap_or(1);
+        if 4 * gcost_words > limits.max_storage_buffer_binding_size.min(limits.max_buffer_size) {
+            return Err(gpu_err(format!(
+                "the cost grids of {n} blocks at radius {} need {} MiB, more than this GPU's storage buffer limit; \
+                 use a smaller radius (or a pyramid), fewer blocks, or --flow-backend cpu",
+                p.radius.max(p.refine_radius),
+                (4 * gcost_words) >> 20
+            )));
+        }
+
+        let make = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: size.max(4).next_multiple_of(4),
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let st = wgpu::BufferUsages::STORAGE;
+        let st_dst = st | wgpu::BufferUsages::COPY_DST;
+        let uniforms: Vec<wgpu::Buffer> = (0..nlev)
+            .map(|l| {
+                let (wl, hl, ws) = dims[l];
+                let u = LevelUniform {
+                    w: wl as u32,
+                    h: hl as u32,
+                    ws: ws as u32,
+                    ws_src: if l == 0 { 0 } else { dims[l - 1].2 as u32 },
+                    k: k as u32,
+                    n: ((2 * k + 1) * (2 * k + 1)) as u32,
+                    rows: rows as u32,
+                    cols: cols as u32,
+                    coarsest: u32::from(l == nlev - 1),
+                    radius: (if l == nlev - 1 { p.radius } else { p.refine_radius }) as u32,
+                    q: p.ambiguity_q8() as u32,
+                    level: l as u32,
+                };
+                let buf = make(
+                    "flow level",
+                    size_of::<LevelUniform>() as u64,
+                    wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                );
+                self.ctx.queue.write_buffer(&buf, 0, bytemuck::bytes_of(&u));
+                buf
+            })
+            .collect();
+        let frame_bytes = |l: usize| 4 * (dims[l].1 * dims[l].2 + 1) as u64;
+        let colsum = make("flow colsum", 4 * (width * height) as u64, st);
+        let bg = |layout: &wgpu::BindGroupLayout, entries: &[(u32, &wgpu::Buffer)]| {
+            let entries: Vec<wgpu::BindGroupEntry> = entries
+                .iter()
+                .map(|&(binding, buf)| wgpu::BindGroupEntry { binding, resource: buf.as_entire_binding() })
+                .collect();
+            device.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout, entries: &entries })
+        };
+        let make_slot = |_s: usize| -> Vec<SlotLevel> {
+            let mut levels: Vec<SlotLevel> = Vec::with_capacity(nlev);
+            for l in 0..nlev {
+                let raw = make("flow raw", frame_bytes(l), st_dst);
+                let hp = (k > 0).then(|| make("flow highpass", frame_bytes(l), st));
+                let down_bg = (l > 0).then(|| {
+                    bg(&self.pipes.prep_layout_down, &[(0, &uniforms[l]), (1, &levels[l - 1].raw), (4, &raw)])
+                });
+                let (colsum_bg, highpass_bg) = match &hp {
+                    Some(hp) => (
+                        Some(bg(&self.pipes.prep_layout_colsum, &[(0, &uniforms[l]), (1, &raw), (2, &colsum)])),
+                        Some(bg(
+                            &self.pipes.prep_layout_highpass,
+                            &[(0, &uniforms[l]), (1, &raw), (3, &colsum), (4, hp)],
+                        )),
+                    ),
+                    None => (None, None),
+                };
+                levels.push(SlotLevel { raw, hp, down_bg, colsum_bg, highpass_bg });
+            }
+            levels
+        };
+        let slots = [make_slot(0), make_slot(1)];
+
+        let orig_bufs: Vec<wgpu::Buffer> = (0..nlev)
+            .map(|l| {
+                let bl = super::level_block(p.block, l);
+                let (wl, hl, _) = dims[l];
+                let data: Vec<u32> = origins
+                    .iter()
+                    .flat_map(|&(ox, oy)| {
+                        [
+                            super::cpu::level_origin(ox, p.block, bl, l, wl) as u32,
+                            super::cpu::level_origin(oy, p.block, bl, l, hl) as u32,
+                        ]
+                    })
+                    .collect();
+                let buf = make("flow origins", 4 * data.len() as u64, st_dst);
+                self.ctx.queue.write_buffer(&buf, 0, bytemuck::cast_slice(&data));
+                buf
+            })
+            .collect();
+        let disp: Vec<wgpu::Buffer> = (0..nlev).map(|_| make("flow displacements", 8 * n as u64, st)).collect();
+        let dummy = make("flow unused", 8, st);
+        let flags = make("flow flags", 4 * n as u64, st);
+        let record_bytes = (4 * RECORD * n) as u64;
+        let result = make("flow records", record_bytes, st | wgpu::BufferUsages::COPY_SRC);
+        let gcost = make("flow cost grids", 4 * gcost_words, st);
+        let staging_buf =
+            || make("flow readback", record_bytes, wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
+        let staging = [staging_buf(), staging_buf()];
+        let match_bgs = [0usize, 1].map(|a| {
+            (0..nlev)
+                .map(|l| {
+                    let prev = if l == nlev - 1 { &dummy } else { &disp[l + 1] };
+                    bg(
+                        &self.pipes.match_layout,
+                        &[
+                            (0, &uniforms[l]),
+                            (1, slots[a][l].matched()),
+                            (2, slots[1 - a][l].matched()),
+                            (3, &orig_bufs[l]),
+                            (4, prev),
+                            (5, &disp[l]),
+                            (6, &flags),
+                            (7, &result),
+                            (8, &gcost),
+                        ],
+                    )
+                })
+                .collect()
+        });
+        if let Some(e) = self.ctx.take_error() {
+            return Err(gpu_err(format!("allocating GPU buffers for {width}x{height} frames: {e}")));
+        }
+        Ok(Sized { width, height, rows, cols, origins, dims, slots, match_bgs, shapes, result, staging, record_bytes })
+    }
+}
+
+/// Writes frame `img` into a packed buffer of `ws` words per row (rows padded with zeros).
+fn upload(queue: &wgpu::Queue, buf: &wgpu::Buffer, img: &LumaImage, ws: usize, pack: &mut Vec<u8>) {
+    let (w, h) = (img.width(), img.height());
+    if w == 4 * ws {
+        queue.write_buffer(buf, 0, img.data());
+        return;
+    }
+    pack.clear();
+    pack.resize(4 * ws * h, 0);
+    for (y, dst) in pack.chunks_exact_mut(4 * ws).enumerate() {
+        dst[..w].copy_from_slice(img.row(y));
+    }
+    queue.write_buffer(buf, 0, pack);
+}
+
+/// Turns the level-0 records into the field, exactly as the CPU engine finishes a block.
+fn fill_field(p: &FlowParams, sized: &Sized, words: &[u32], field: &mut FlowField) {
+    let bs = p.block;
+    field.rows = sized.rows;
+    field.cols = sized.cols;
+    field.width = sized.width;
+    field.height = sized.height;
+    field.vectors.clear();
+    let tq = p.min_texture_q4();
+    for (rec, &(ox, oy)) in words.chunks_exact(RECORD).zip(&sized.origins) {
+        let d = (rec[0] as i32, rec[1] as i32);
+        let (c1, f) = (rec[2], rec[3]);
+        let s = |bit: u32, v: u32| (f & bit != 0).then_some(u64::from(v));
+        let s0 = u64::from(rec[4]);
+        let du = super::cpu::parabola(s(4, rec[5]), s0, s(8, rec[6]));
+        let dv = super::cpu::parabola(s(16, rec[7]), s0, s(32, rec[8]));
+        let textureless = 16 * u64::from(rec[9]) < tq * (2 * bs * (bs - 1)) as u64;
+        let validity = if textureless {
+            Validity::Textureless
+        } else if f & 1 != 0 {
+            Validity::OutOfFrame
+        } else if f & 2 != 0 {
+            Validity::Ambiguous
+        } else {
+            Validity::Valid
+        };
+        field.vectors.push(FlowVector {
+            x: (ox + bs / 2) as f32,
+            y: (oy + bs / 2) as f32,
+            u: (f64::from(d.0) + du) as f32,
+            v: (f64::from(d.1) + dv) as f32,
+            validity,
+            cost: c1 as f32 / (bs * bs) as f32,
+        });
+    }
+}
+
+impl FlowEngine for GpuFlow {
+    fn name(&self) -> &'static str {
+        "gpu"
+    }
+
+    fn params(&self) -> &FlowParams {
+        &self.params
+    }
+
+    /// Submits the pair and waits for its field. A pair still in flight from
+    /// [`GpuFlow::compute_pipelined`] is completed first (its field is superseded).
+    fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError> {
+        self.submit(a, b)?;
+        while !self.pending.is_empty() {
+            self.receive()?;
+        }
+        Ok(&self.field)
+    }
+}

@@ -1,0 +1,373 @@
+//! The GPU flow engine against the CPU engine (which `src/flow` tests against the literal
+//! contract): identical integer displacements, validity flags and costs, sub-pixel within 1e-3
+//! px, on random textures and motions, with borders, textureless blocks, pyramids, dense mode,
+//! and the pipelined API. Runs on any wgpu adapter, including Mesa's software lavapipe/llvmpipe
+//! (`WGPU_BACKEND=vulkan` or `gl`); skipped with a message only where no adapter exists.
+
+use flownav::flow::gpu::{self, GpuContext, GpuFlow};
+use flownav::flow::{Backend, FlowEngine, FlowField, FlowParams, Placement, cpu::CpuFlow, create_engine};
+use hal::LumaImage;
+use std::sync::{Arc, OnceLock};
+
+/// The shared GPU context, or `None` (with a visible message) where wgpu finds no adapter.
+fn context() -> Option<Arc<GpuContext>> {
+    static CTX: OnceLock<Option<Arc<GpuContext>>> = OnceLock::new();
+    let ctx = CTX.get_or_init(|| match GpuContext::any() {
+        Ok(ctx) => {
+            eprintln!("GPU flow tests on {}", gpu::describe_adapter(ctx.info()));
+            Some(Arc::new(ctx))
+        }
+        Err(e) => {
+            eprintln!("SKIPPED: no wgpu adapter on this machine ({e})");
+            None
+        }
+    });
+    ctx.clone()
+}
+
+/// xorshift64* — deterministic, no dependency.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n
+    }
+}
+
+/// A random smooth texture: value noise on an 8 px lattice, bilinearly interpolated, plus fine
+/// noise; a flat (textureless) rectangle when `flat` is set.
+fn texture(w: usize, h: usize, seed: u64, flat: bool) -> Vec<f64> {
+    let mut rng = Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1);
+    let (gw, gh) = (w / 8 + 2, h / 8 + 2);
+    let lattice: Vec<f64> = (0..gw * gh).map(|_| rng.below(256) as f64).collect();
+    let mut img = vec![0.0; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (fx, fy) = (x as f64 / 8.0, y as f64 / 8.0);
+            let (ix, iy) = (fx as usize, fy as usize);
+            let (tx, ty) = (fx - ix as f64, fy - iy as f64);
+            let l = |xx: usize, yy: usize| lattice[yy * gw + xx];
+            let v = l(ix, iy) * (1.0 - tx) * (1.0 - ty)
+                + l(ix + 1, iy) * tx * (1.0 - ty)
+                + l(ix, iy + 1) * (1.0 - tx) * ty
+                + l(ix + 1, iy + 1) * tx * ty;
+            img[y * w + x] = v * 0.8 + rng.below(40) as f64;
+        }
+    }
+    if flat {
+        for y in h / 3..h / 3 + h / 4 {
+            for x in w / 4..w / 4 + w / 3 {
+                img[y * w + x] = 100.0;
+            }
+        }
+    }
+    img
+}
+
+/// Samples `scene` (a `sw × sh` float image) at (x + dx, y + dy) for a `w × h` frame, bilinear,
+/// edge-clamped, times `gain`.
+fn warp(scene: (&[f64], usize, usize), (w, h): (usize, usize), (dx, dy): (f64, f64), gain: f64) -> LumaImage {
+    let (src, sw, sh) = scene;
+    LumaImage::from_fn(w, h, |x, y| {
+        let (fx, fy) = ((x as f64 + dx).clamp(0.0, sw as f64 - 1.001), (y as f64 + dy).clamp(0.0, sh as f64 - 1.001));
+        let (ix, iy) = (fx as usize, fy as usize);
+        let (tx, ty) = (fx - ix as f64, fy - iy as f64);
+        let p = |xx: usize, yy: usize| src[yy * sw + xx];
+        let v = p(ix, iy) * (1.0 - tx) * (1.0 - ty)
+            + p(ix + 1, iy) * tx * (1.0 - ty)
+            + p(ix, iy + 1) * (1.0 - tx) * ty
+            + p(ix + 1, iy + 1) * tx * ty;
+        (v * gain).round().clamp(0.0, 255.0) as u8
+    })
+}
+
+/// A frame pair: B shows the scene moved by (mx, my) px (B(x) = A(x − m)), with a brightness
+/// gain, so the true flow is (mx, my).
+fn pair(w: usize, h: usize, seed: u64, mx: f64, my: f64, flat: bool) -> (LumaImage, LumaImage) {
+    let scene = texture(w + 64, h + 64, seed, flat);
+    let (sw, sh) = (w + 64, h + 64);
+    let a = warp((&scene, sw, sh), (w, h), (32.0, 32.0), 1.0);
+    let b = warp((&scene, sw, sh), (w, h), (32.0 - mx, 32.0 - my), 1.05);
+    (a, b)
+}
+
+fn assert_same(gpu: &FlowField, cpu: &FlowField, what: &str) {
+    assert_eq!((gpu.rows, gpu.cols, gpu.width, gpu.height), (cpu.rows, cpu.cols, cpu.width, cpu.height), "{what}");
+    assert_eq!(gpu.vectors.len(), cpu.vectors.len(), "{what}");
+    for (i, (g, c)) in gpu.vectors.iter().zip(&cpu.vectors).enumerate() {
+        let at = format!("{what}: block {i} at ({}, {})", c.x, c.y);
+        assert_eq!((g.x, g.y), (c.x, c.y), "{at}");
+        assert_eq!(g.validity, c.validity, "{at}: gpu {g:?} cpu {c:?}");
+        assert_eq!(g.cost, c.cost, "{at}: gpu {g:?} cpu {c:?}");
+        assert_eq!((g.u - c.u).round(), 0.0, "{at}: integer displacement differs: gpu {g:?} cpu {c:?}");
+        assert!((g.u - c.u).abs() <= 1e-3 && (g.v - c.v).abs() <= 1e-3, "{at}: gpu {g:?} cpu {c:?}");
+    }
+}
+
+/// GPU and CPU fields for `params` on (a, b).
+fn both(ctx: &Arc<GpuContext>, params: &FlowParams, a: &LumaImage, b: &LumaImage) -> (FlowField, FlowField) {
+    let mut g = GpuFlow::new(Arc::clone(ctx), params.clone()).expect("GPU engine");
+    let mut c = CpuFlow::new(params.clone()).expect("CPU engine");
+    let gf = g.compute(a, b).expect("GPU flow").clone();
+    let cf = c.compute(a, b).expect("CPU flow").clone();
+    (gf, cf)
+}
+
+fn small(rows: usize, cols: usize, block: usize, radius: usize) -> FlowParams {
+    FlowParams { rows, cols, block, radius, backend: Backend::Gpu, ..FlowParams::default() }
+}
+
+#[test]
+fn random_translations_match_the_cpu_engine() {
+    let Some(ctx) = context() else { return };
+    let params = small(5, 7, 16, 6);
+    let mut rng = Rng(7);
+    let mut valid = 0;
+    for seed in 0..4 {
+        let (mx, my) = (rng.below(1300) as f64 / 100.0 - 6.5, rng.below(1300) as f64 / 100.0 - 6.5);
+        let (a, b) = pair(160, 120, seed, mx, my, seed % 2 == 1);
+        let (g, c) = both(&ctx, &params, &a, &b);
+        assert_same(&g, &c, &format!("seed {seed}, motion ({mx:.2}, {my:.2})"));
+        valid += g.valid_count();
+        // The engines agree with each other; check that they also measure the motion.
+        for v in g.vectors.iter().filter(|v| v.valid()) {
+            assert!(
+                (v.u as f64 - mx).abs() < 0.6 && (v.v as f64 - my).abs() < 0.6,
+                "seed {seed}: {v:?} vs ({mx}, {my})"
+            );
+        }
+    }
+    assert!(valid > 40, "only {valid} valid vectors over 4 pairs");
+}
+
+#[test]
+fn borders_textureless_blocks_and_unrelated_frames_match() {
+    let Some(ctx) = context() else { return };
+    // Large motion: blocks at the borders lose their match (out_of_frame), the flat rectangle is
+    // textureless, and B unrelated to A gives ambiguous blocks.
+    let params = FlowParams { placement: Placement::Tile, ..small(6, 8, 16, 5) };
+    let (a, b) = pair(128, 96, 11, 4.0, -3.0, true);
+    let (g, c) = both(&ctx, &params, &a, &b);
+    assert_same(&g, &c, "tiled, flat patch");
+    let reasons = |f: &FlowField, r| f.vectors.iter().filter(|v| v.validity == r).count();
+    assert!(reasons(&c, flownav::flow::Validity::Textureless) > 0, "the flat patch is textureless");
+    assert!(reasons(&c, flownav::flow::Validity::OutOfFrame) > 0, "border blocks are out of frame");
+
+    let (a2, _) = pair(128, 96, 12, 0.0, 0.0, false);
+    let (_, b2) = pair(128, 96, 13, 0.0, 0.0, false);
+    let (g, c) = both(&ctx, &small(4, 5, 16, 6), &a2, &b2);
+    assert_same(&g, &c, "unrelated frames");
+    assert!(reasons(&c, flownav::flow::Validity::Ambiguous) > 0, "unrelated frames give ambiguous blocks");
+}
+
+#[test]
+fn pyramid_raw_intensities_and_odd_block_sides_match() {
+    let Some(ctx) = context() else { return };
+    let (a, b) = pair(256, 192, 21, 13.4, -9.7, false);
+    // Coarse-to-fine: 3 levels (blocks 32, 16, 8), motion beyond the radius of one level.
+    let pyr = FlowParams { pyramid_levels: 3, refine_radius: 2, ..small(4, 6, 32, 4) };
+    let (g, c) = both(&ctx, &pyr, &a, &b);
+    assert_same(&g, &c, "pyramid 3");
+    assert!(c.valid_count() >= 12, "pyramid finds the motion: {} valid", c.valid_count());
+    // No prefilter, a block side that is not a multiple of 4 (row tails), odd frame width.
+    let (a, b) = pair(149, 101, 22, 2.3, 1.6, true);
+    for (block, levels) in [(10, 1), (18, 2), (6, 1)] {
+        let p = FlowParams { prefilter_radius: 0, pyramid_levels: levels, ..small(4, 5, block, 5) };
+        let (g, c) = both(&ctx, &p, &a, &b);
+        assert_same(&g, &c, &format!("raw, block {block}, {levels} level(s)"));
+    }
+    // Prefilter radius 7 (window 15×15) with a 2-level pyramid.
+    let p = FlowParams { prefilter_radius: 7, pyramid_levels: 2, ..small(3, 4, 24, 3) };
+    let (g, c) = both(&ctx, &p, &a, &b);
+    assert_same(&g, &c, "prefilter 7, pyramid 2");
+}
+
+#[test]
+fn large_windows_spill_costs_to_global_memory_and_match() {
+    let Some(ctx) = context() else { return };
+    // 2·40+1 = 81² candidate costs do not fit workgroup memory: banded window, global costs.
+    let (a, b) = pair(128, 96, 31, -17.0, 12.0, false);
+    let p = FlowParams { ambiguity_ratio: 0.5, ..small(2, 3, 8, 40) };
+    let (g, c) = both(&ctx, &p, &a, &b);
+    assert_same(&g, &c, "radius 40");
+}
+
+#[test]
+fn dense_mode_grid_and_parity() {
+    let Some(ctx) = context() else { return };
+    let (a, b) = pair(136, 96, 41, 1.5, -2.5, false);
+    let p = FlowParams { stride: Some(8), ..small(1, 1, 16, 4) };
+    // 136/8 = 17 → 16 columns, 96/8 = 12 → 8 rows.
+    assert_eq!(p.grid(136, 96), (8, 16));
+    let (g, c) = both(&ctx, &p, &a, &b);
+    assert_eq!((g.rows, g.cols), (8, 16));
+    assert_same(&g, &c, "dense stride 8");
+    let reference = flownav::flow::reference::reference_flow(&p, &a, &b).expect("reference");
+    assert_same(&g, &reference, "dense stride 8 vs reference");
+    // The rule at 720p, and the errors.
+    assert_eq!(p.grid(1280, 720), (88, 160));
+    let tiled = FlowParams { placement: Placement::Tile, ..p.clone() };
+    assert!(tiled.validate().unwrap_err().to_string().contains("flow.stride"));
+    let coarse = FlowParams { stride: Some(16), ..p.clone() };
+    let err = CpuFlow::new(coarse.clone()).unwrap().compute(&a, &b).unwrap_err().to_string();
+    assert!(err.contains("smaller flow.stride"), "{err}");
+    let err = GpuFlow::new(Arc::clone(&ctx), coarse).unwrap().compute(&a, &b).unwrap_err().to_string();
+    assert!(err.contains("smaller flow.stride"), "{err}");
+}
+
+#[test]
+fn pipelined_stream_reuses_frames_and_matches() {
+    let Some(ctx) = context() else { return };
+    let params = small(4, 5, 16, 5);
+    let scene = texture(224, 160, 51, false);
+    let frames: Vec<LumaImage> = (0..4)
+        .map(|i| warp((&scene, 224, 160), (128, 96), (40.0 - 2.5 * i as f64, 30.0 + 1.25 * i as f64), 1.0))
+        .collect();
+    let mut g = GpuFlow::new(Arc::clone(&ctx), params.clone()).expect("GPU engine");
+    let mut c = CpuFlow::new(params).expect("CPU engine");
+    let expected: Vec<FlowField> = frames.windows(2).map(|p| c.compute(&p[0], &p[1]).unwrap().clone()).collect();
+    let mut got = Vec::new();
+    for (i, p) in frames.windows(2).enumerate() {
+        if let Some(f) = g.compute_pipelined(&p[0], &p[1]).expect("submit") {
+            got.push(f.clone());
+        }
+        assert_eq!(g.reused_frame_a(), i > 0, "pair {i}: frame A is the previous B");
+    }
+    got.push(g.flush().expect("flush").expect("one pair in flight").clone());
+    assert!(g.flush().unwrap().is_none());
+    assert_eq!(got.len(), expected.len());
+    for (i, (gf, cf)) in got.iter().zip(&expected).enumerate() {
+        assert_same(gf, cf, &format!("stream pair {i}"));
+    }
+    // A different frame size on the same engine rebuilds its buffers.
+    let (a, b) = pair(160, 112, 52, 3.0, 2.0, false);
+    let gf = g.compute(&a, &b).expect("resized").clone();
+    assert_same(&gf, c.compute(&a, &b).unwrap(), "after resize");
+}
+
+#[test]
+fn every_adapter_backend_agrees() {
+    // Vulkan (lavapipe) and GL (llvmpipe) here, whatever is installed elsewhere.
+    let instance = gpu::instance();
+    let adapters = gpu::adapters(&instance);
+    if adapters.is_empty() {
+        eprintln!("SKIPPED: no wgpu adapter on this machine");
+        return;
+    }
+    let (a, b) = pair(128, 96, 61, -3.2, 2.7, true);
+    let params = FlowParams { pyramid_levels: 2, ..small(3, 4, 16, 3) };
+    let cpu = CpuFlow::new(params.clone()).unwrap().compute(&a, &b).unwrap().clone();
+    for adapter in &adapters {
+        let name = gpu::describe_adapter(&adapter.get_info());
+        eprintln!("adapter {name}");
+        let ctx = Arc::new(GpuContext::new(adapter).unwrap_or_else(|e| panic!("{name}: {e}")));
+        let mut g = GpuFlow::new(ctx, params.clone()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_same(g.compute(&a, &b).unwrap_or_else(|e| panic!("{name}: {e}")), &cpu, &name);
+    }
+}
+
+#[test]
+fn backend_selection() {
+    let instance = gpu::instance();
+    let adapters = gpu::adapters(&instance);
+    let hardware = adapters.iter().any(|a| gpu::is_hardware(&a.get_info()));
+    let (engine, report) = create_engine(&FlowParams { backend: Backend::Auto, ..FlowParams::default() }).unwrap();
+    assert_eq!(engine.name(), if hardware { "gpu" } else { "cpu" }, "{report}");
+    assert_eq!(report.engine, engine.name());
+    let (engine, report) = create_engine(&FlowParams { backend: Backend::Cpu, ..FlowParams::default() }).unwrap();
+    assert_eq!((engine.name(), report.adapter), ("cpu", None));
+    match create_engine(&FlowParams { backend: Backend::Gpu, ..FlowParams::default() }) {
+        Ok((engine, report)) => {
+            assert_eq!(engine.name(), "gpu");
+            assert!(report.adapter.is_some(), "{report}");
+        }
+        Err(e) => {
+            assert!(adapters.is_empty(), "an adapter exists but gpu failed: {e}");
+            assert!(e.to_string().contains("mesa-vulkan-drivers"), "{e}");
+        }
+    }
+    // Software adapters are never chosen by auto.
+    for a in &adapters {
+        let info = a.get_info();
+        if info.device_type == wgpu::DeviceType::Cpu || info.name.contains("llvmpipe") {
+            assert!(!gpu::is_hardware(&info), "{info:?}");
+        }
+    }
+}
+
+#[test]
+fn exact_ties_follow_the_contract_tie_break() {
+    let Some(ctx) = context() else { return };
+    // Periodic patterns make many candidates cost exactly the same: the winner is decided only
+    // by the tie-break (distance to the window centre, then dy, then dx).
+    let stripes = |shift: usize| LumaImage::from_fn(96, 64, move |x, _| [20u8, 200, 90, 160][(x + shift) % 4]);
+    let checker = |shift: usize| {
+        LumaImage::from_fn(96, 64, move |x, y| if ((x + shift) / 3 + y / 3).is_multiple_of(2) { 40 } else { 220 })
+    };
+    let flat = LumaImage::from_fn(96, 64, |_, _| 77);
+    let p = small(3, 4, 16, 5);
+    for (name, a, b) in
+        [("stripes", stripes(0), stripes(1)), ("checker", checker(0), checker(2)), ("flat", flat.clone(), flat.clone())]
+    {
+        let (g, c) = both(&ctx, &p, &a, &b);
+        assert_same(&g, &c, name);
+        let reference = flownav::flow::reference::reference_flow(&p, &a, &b).expect("reference");
+        assert_same(&g, &reference, &format!("{name} vs reference"));
+    }
+}
+
+#[test]
+fn cli_gpu_backend_runs_or_names_what_to_install() {
+    let tmp = std::env::temp_dir().join(format!("flownav-gpu-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let (a, b) = pair(128, 96, 71, 2.0, -1.0, false);
+    let (pa, pb) = (tmp.join("a.png"), tmp.join("b.png"));
+    image::GrayImage::from_raw(128, 96, a.data().to_vec()).unwrap().save(&pa).unwrap();
+    image::GrayImage::from_raw(128, 96, b.data().to_vec()).unwrap().save(&pb).unwrap();
+    let run = |backend_env: Option<&str>| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_flownav"));
+        cmd.args([
+            "flow",
+            "--json",
+            "--flow-backend",
+            "gpu",
+            "--rows",
+            "2",
+            "--cols",
+            "3",
+            "--block",
+            "16",
+            "--radius",
+            "4",
+        ]);
+        cmd.args([&pa, &pb]);
+        if let Some(b) = backend_env {
+            cmd.env("WGPU_BACKEND", b);
+        }
+        cmd.output().unwrap()
+    };
+    // A wgpu backend that does not exist off Apple platforms: no adapter, a clear error.
+    if !cfg!(target_vendor = "apple") {
+        let out = run(Some("metal"));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && !err.contains("panicked"), "{err}");
+        for needle in ["no GPU adapter", "mesa-vulkan-drivers", "--flow-backend cpu"] {
+            assert!(err.contains(needle), "{err}");
+        }
+    }
+    if context().is_some() {
+        let out = run(None);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(json["backend"], "gpu");
+        assert_eq!(json["vectors"].as_array().unwrap().len(), 6);
+    }
+    std::fs::remove_dir_all(&tmp).ok();
+}
