@@ -349,12 +349,14 @@ fn level0_stats_impl(
     win: &Window,
     d: (i32, i32),
 ) -> Stats {
-    let s = |e: (i32, i32)| win.contains(e).then(|| ssd(a, b, x0, y0, block, e));
-    Stats {
-        texture: texture(a, block),
-        ssd: ssd(a, b, x0, y0, block, d),
-        ssd_neighbours: [s((d.0 - 1, d.1)), s((d.0 + 1, d.1)), s((d.0, d.1 - 1)), s((d.0, d.1 + 1))],
+    // Plain loops, no closures: a closure would not be compiled with the caller's AVX2.
+    let mut ssd_neighbours = [None; 4];
+    for (n, e) in [(d.0 - 1, d.1), (d.0 + 1, d.1), (d.0, d.1 - 1), (d.0, d.1 + 1)].into_iter().enumerate() {
+        if win.contains(e) {
+            ssd_neighbours[n] = Some(ssd(a, b, x0, y0, block, e));
+        }
     }
+    Stats { texture: texture(a, block), ssd: ssd(a, b, x0, y0, block, d), ssd_neighbours }
 }
 
 /// Gradient energy of a block: Σ|a(x+1,y) − a(x,y)| + Σ|a(x,y+1) − a(x,y)|.
@@ -488,6 +490,20 @@ fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
             costs[win.index(d)] = c;
             note(d);
             consider(d, c, &mut best);
+        }
+    }
+    // Then the 3×3 neighbourhood of the best predictor: flow varies smoothly, so the minimum is
+    // usually there, and a tight bound early makes most of the raster scan stop after 8 rows.
+    let centre = best.2;
+    for ny in -1..=1 {
+        for nx in -1..=1 {
+            let d = (centre.0 + nx, centre.1 + ny);
+            if win.contains(d) && costs[win.index(d)] == PENDING {
+                let c = sad!(d, u32::MAX).expect("no limit");
+                costs[win.index(d)] = c;
+                note(d);
+                consider(d, c, &mut best);
+            }
         }
     }
     let mut limit = bound(best.0);
