@@ -28,8 +28,9 @@ use std::path::{Path, PathBuf};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MofisParams {
-    /// Folder with `avoidance.toml` and `fusion.toml` (the rule bases).
-    pub rules_dir: PathBuf,
+    /// Folder with `avoidance.toml` and `fusion.toml` (the rule bases); unset = the copies of
+    /// `rules/mofis/` built into the binary, so flownav runs from any directory.
+    pub rules_dir: Option<PathBuf>,
     /// Goal behaviour turn rate per radian of goal angle, 1/s (ω_goal = gain · angle).
     pub heading_gain: f64,
     /// Distance fed to the rule bases when nothing is seen (no obstacle, open ahead), m; the
@@ -45,7 +46,7 @@ pub struct MofisParams {
 impl Default for MofisParams {
     fn default() -> Self {
         Self {
-            rules_dir: PathBuf::from("rules/mofis"),
+            rules_dir: None,
             heading_gain: 1.5,
             sensing_range_m: 5.0,
             unknown_obstacle_distance_m: 1.5,
@@ -138,9 +139,20 @@ pub struct Mofis {
 impl Mofis {
     /// Loads `avoidance.toml` and `fusion.toml` from `params.rules_dir`.
     pub fn load(params: MofisParams, limits: ControlLimits) -> Result<Self, MofisError> {
-        let read = |name: &str| {
-            let path = params.rules_dir.join(name);
-            FuzzySystem::from_file(&path).map_err(|source| MofisError::Rules { path, source })
+        let read = |name: &str| match &params.rules_dir {
+            Some(dir) => {
+                let path = dir.join(name);
+                FuzzySystem::from_file(&path).map_err(|source| MofisError::Rules { path, source })
+            }
+            None => {
+                let text = match name {
+                    "avoidance.toml" => BUILTIN_AVOIDANCE,
+                    _ => BUILTIN_FUSION,
+                };
+                let origin = format!("(built-in) rules/mofis/{name}");
+                FuzzySystem::from_toml_str(text, &origin)
+                    .map_err(|source| MofisError::Rules { path: PathBuf::from(origin), source })
+            }
         };
         let avoidance = read("avoidance.toml")?;
         let fusion = read("fusion.toml")?;
@@ -275,7 +287,11 @@ impl Mofis {
     }
 }
 
+/// The shipped rule bases, compiled in.
+const BUILTIN_AVOIDANCE: &str = include_str!("../../rules/mofis/avoidance.toml");
+const BUILTIN_FUSION: &str = include_str!("../../rules/mofis/fusion.toml");
+
 /// Loads both rule bases from `dir` with default parameters (for tools and tests).
 pub fn load_default(dir: impl AsRef<Path>, limits: ControlLimits) -> Result<Mofis, MofisError> {
-    Mofis::load(MofisParams { rules_dir: dir.as_ref().to_path_buf(), ..MofisParams::default() }, limits)
+    Mofis::load(MofisParams { rules_dir: Some(dir.as_ref().to_path_buf()), ..MofisParams::default() }, limits)
 }

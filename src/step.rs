@@ -1,0 +1,186 @@
+//! The per-frame step: frames and odometry in, perception and a set-point out.
+//!
+//! [`Pipeline::step`] is a pure, synchronous, deterministic function of (previous frame, frame,
+//! odometry, state): no clocks, no I/O. `run`, `sim`, `analyze` and `replay` all call this one
+//! function, so what is tested offline is what drives the robot, and replaying a log through it
+//! reproduces the logged outputs bit for bit on the CPU backend.
+//!
+//! Order inside a step (paper Fig. 3): flow (frame pair) → OFFIS (perception) → PAFSIS (goal
+//! velocity and angle, or a constant cruise goal without a mission) → MOFIS (avoidance, fusion,
+//! limiter) → set-point.
+
+use crate::config::Config;
+use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
+use crate::mofis::{Mofis, MofisError, MofisOutput};
+use crate::offis::{Offis, OffisError};
+use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
+use crate::perception::Perception;
+use hal::{BodyVelocity, Calibration, Frame};
+
+#[derive(Debug, thiserror::Error)]
+pub enum StepError {
+    #[error("optical flow failed: {0}")]
+    Flow(#[from] FlowError),
+    #[error("OFFIS failed: {0}")]
+    Offis(#[from] OffisError),
+    #[error("MOFIS failed: {0}")]
+    Mofis(#[from] MofisError),
+    #[error("frame {seq} is not newer than the previous frame (t {t_ns} ns after {prev_ns} ns): timestamps must increase")]
+    Time { seq: u64, t_ns: u64, prev_ns: u64 },
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error(transparent)]
+    Flow(#[from] FlowError),
+    #[error(transparent)]
+    Mofis(#[from] MofisError),
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+}
+
+/// What one step produced (the newer frame of the pair is `seq`, captured at `t_ns`).
+#[derive(Clone, Debug)]
+pub struct StepOutput {
+    pub seq: u64,
+    pub t_ns: u64,
+    /// Frame interval of the pair, s.
+    pub dt: f64,
+    pub flow: FlowField,
+    pub perception: Perception,
+    pub goal: Goal,
+    pub mofis: MofisOutput,
+}
+
+impl StepOutput {
+    /// The set-point to send to the base.
+    pub fn setpoint(&self) -> BodyVelocity {
+        self.mofis.setpoint
+    }
+}
+
+/// Where the goal comes from.
+enum Navigator {
+    /// PAFSIS on a topological map with a mission.
+    Mission(Box<Pafsis>),
+    /// No mission (`analyze`, `run` without a map): go straight ahead at this speed, avoiding.
+    Cruise(f64),
+}
+
+/// The per-frame pipeline and its state.
+pub struct Pipeline {
+    calib: Calibration,
+    /// `calib` scaled to the frame size actually received (set on the first frame).
+    frame_calib: Option<Calibration>,
+    flow: Box<dyn FlowEngine>,
+    backend: BackendReport,
+    offis: Offis,
+    navigator: Navigator,
+    mofis: Mofis,
+    prev: Option<Frame>,
+}
+
+impl Pipeline {
+    /// Builds the pipeline from the configuration; `mission` (map + FROM:TO) enables PAFSIS,
+    /// otherwise the robot cruises straight ahead at `pafsis.cruise_speed` while avoiding.
+    pub fn new(cfg: &Config, calib: Calibration, mission: Option<(TopoMap, Mission)>) -> Result<Self, PipelineError> {
+        let (flow, backend) = flow::create_engine(&cfg.flow)?;
+        let mofis = Mofis::load(cfg.mofis.clone(), cfg.control.clone())?;
+        let navigator = match mission {
+            Some((map, mission)) => Navigator::Mission(Box::new(Pafsis::new(map, mission, cfg.pafsis.clone())?)),
+            None => Navigator::Cruise(cfg.pafsis.cruise_speed),
+        };
+        Ok(Self {
+            calib,
+            frame_calib: None,
+            flow,
+            backend,
+            offis: Offis::new(cfg.offis.clone()),
+            navigator,
+            mofis,
+            prev: None,
+        })
+    }
+
+    /// Which flow engine runs, and why.
+    pub fn backend(&self) -> &BackendReport {
+        &self.backend
+    }
+
+    /// The OFFIS stage (its `attributes()` hold the matrices of the last step, for logging).
+    pub fn offis(&self) -> &Offis {
+        &self.offis
+    }
+
+    /// The PAFSIS planner, when running a mission.
+    pub fn pafsis(&self) -> Option<&Pafsis> {
+        match &self.navigator {
+            Navigator::Mission(p) => Some(p),
+            Navigator::Cruise(_) => None,
+        }
+    }
+
+    pub fn pafsis_mut(&mut self) -> Option<&mut Pafsis> {
+        match &mut self.navigator {
+            Navigator::Mission(p) => Some(p),
+            Navigator::Cruise(_) => None,
+        }
+    }
+
+    /// The calibration in use for the current frame size.
+    pub fn calibration(&self) -> &Calibration {
+        self.frame_calib.as_ref().unwrap_or(&self.calib)
+    }
+
+    /// A zero set-point through the limiter's stop path (for stalls and failures); also forgets
+    /// the previous frame so the next pair does not span the gap.
+    pub fn fail_safe(&mut self) -> BodyVelocity {
+        self.prev = None;
+        self.mofis.fallback()
+    }
+
+    /// One step. The first frame only primes the pipeline (`Ok(None)`); each later frame gives
+    /// the flow from the previous frame to it, the perception, the goal and the set-point.
+    /// On error the caller must command a stop (see [`Pipeline::fail_safe`]); the frame still
+    /// becomes the previous frame so the next pair can succeed.
+    pub fn step(&mut self, frame: Frame, odometry: BodyVelocity) -> Result<Option<StepOutput>, StepError> {
+        let calib = self.calib_for(&frame);
+        let Some(prev) = self.prev.replace(frame) else {
+            return Ok(None);
+        };
+        let frame = self.prev.as_ref().expect("just stored");
+        if frame.t_ns <= prev.t_ns {
+            let err = StepError::Time { seq: frame.seq, t_ns: frame.t_ns, prev_ns: prev.t_ns };
+            return Err(err);
+        }
+        let dt = (frame.t_ns - prev.t_ns) as f64 * 1e-9;
+        let flow = self.flow.compute(&prev.image, &frame.image)?.clone();
+        let perception = self.offis.step(&flow, odometry, dt, &calib)?;
+        let goal = match &mut self.navigator {
+            Navigator::Mission(pafsis) => pafsis.step(&perception, odometry, dt),
+            Navigator::Cruise(v) => Goal { velocity: *v, angle_rad: 0.0, status: GoalStatus::Active },
+        };
+        let mofis = self.mofis.step(&perception, &goal, dt)?;
+        Ok(Some(StepOutput { seq: frame.seq, t_ns: frame.t_ns, dt, flow, perception, goal, mofis }))
+    }
+
+    fn calib_for(&mut self, frame: &Frame) -> Calibration {
+        let (w, h) = (frame.image.width() as u32, frame.image.height() as u32);
+        match &self.frame_calib {
+            Some(c) if c.camera.width == w && c.camera.height == h => c.clone(),
+            _ => {
+                let c = &self.calib.camera;
+                if c.width != w || c.height != h {
+                    tracing::warn!(
+                        "frames are {w}x{h} but the calibration is for {}x{}: scaling the intrinsics",
+                        c.width,
+                        c.height
+                    );
+                }
+                let scaled = self.calib.scaled_to(w, h);
+                self.frame_calib = Some(scaled.clone());
+                scaled
+            }
+        }
+    }
+}
