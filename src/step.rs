@@ -92,16 +92,7 @@ impl Pipeline {
             Some((map, mission)) => Navigator::Mission(Box::new(Pafsis::new(map, mission, cfg.pafsis.clone())?)),
             None => Navigator::Cruise(cfg.pafsis.cruise_speed),
         };
-        Ok(Self {
-            calib,
-            frame_calib: None,
-            flow,
-            backend,
-            offis: Offis::new(cfg.offis),
-            navigator,
-            mofis,
-            prev: None,
-        })
+        Ok(Self { calib, frame_calib: None, flow, backend, offis: Offis::new(cfg.offis), navigator, mofis, prev: None })
     }
 
     /// Which flow engine runs, and why.
