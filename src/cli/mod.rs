@@ -7,10 +7,10 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
-pub mod flow;
-pub mod render;
 pub mod devices;
+pub mod flow;
 pub mod log;
+pub mod render;
 pub mod sim_base;
 
 #[derive(Debug, Parser)]
@@ -86,7 +86,9 @@ pub fn init_tracing(verbose: u8) {
         1 => "debug",
         _ => "trace",
     };
+    // wgpu's GL probe logs driver-loading errors on machines without a GPU; they are not ours.
+    let default = format!("{default},wgpu_hal=off,wgpu_core=warn,naga=warn");
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(&default));
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
 }
