@@ -32,5 +32,6 @@ pub mod mofis;
 pub mod offis;
 pub mod pafsis;
 pub mod perception;
+pub mod replay;
 pub mod sources;
 pub mod step;

@@ -11,6 +11,7 @@ pub mod devices;
 pub mod flow;
 pub mod log;
 pub mod render;
+pub mod replay;
 pub mod sim_base;
 
 #[derive(Debug, Parser)]
@@ -66,6 +67,8 @@ pub enum Command {
     Log(log::Args),
     /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
     SimBase(sim_base::Args),
+    /// Re-run the pipeline on a run log's frames and odometry; --check compares with the logged outputs.
+    Replay(replay::Args),
 }
 
 /// Runs one parsed command line.
@@ -76,6 +79,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Devices(args) => devices::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
         Command::SimBase(args) => sim_base::run(args, &cli.common),
+        Command::Replay(args) => replay::run(args, &cli.common),
     }
 }
 
