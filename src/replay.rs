@@ -307,6 +307,7 @@ impl Replayer {
                 StepInputLog::FailSafe { .. } => {
                     self.pipeline.fail_safe();
                     self.last_fed = None;
+                    self.last_seq = None;
                     self.summary.fail_safes += 1;
                     // Without PAFSIS, the limiter and the previous frame are all the state there is.
                     if !self.has_mission {
