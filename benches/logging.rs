@@ -98,5 +98,44 @@ fn writer_thread(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, control_path, writer_thread);
+/// `logging::record::record_step` (what `run` and `sim` call after each step: `/step/input`, flow,
+/// perception with the OFFIS attributes converted to JSON, goal, set-point), on a real step's
+/// output (CPU flow on two 640×360 sample frames, the office mission).
+fn record_step(c: &mut Criterion) {
+    use flownav::logging::record;
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = flownav::config::Config::default();
+    cfg.flow.backend = flownav::flow::Backend::Cpu;
+    let calib = hal::Calibration::nominal_c310().scaled_to(640, 360);
+    let map = flownav::pafsis::TopoMap::load(concat!(env!("CARGO_MANIFEST_DIR"), "/maps/office.toml")).unwrap();
+    let mission: flownav::pafsis::Mission = "R9:D2".parse().unwrap();
+    let mut pipeline = flownav::step::Pipeline::new(&cfg, calib, Some((map, mission))).unwrap();
+    let odo = hal::BodyVelocity { v: 0.3, omega: 0.1 };
+    let frame = |i: u64| hal::Frame { seq: i, t_ns: i * FRAME_NS, image: sample::frame(i, 640, 360) };
+    pipeline.step(frame(0), odo).unwrap();
+    let out = pipeline.step(frame(1), odo).unwrap().unwrap();
+    let writer = LogWriter::create_at(&dir.path().join("record.mcap"), LogOptions::new("bench")).unwrap();
+    let handle = writer.handle();
+    let mut group = c.benchmark_group("logging_record_step");
+    group.sample_size(20).warm_up_time(Duration::from_secs(1)).measurement_time(Duration::from_secs(4));
+    group.bench_function("record_step", |b| {
+        b.iter_custom(|iters| {
+            let mut total = Duration::ZERO;
+            for _ in 0..iters {
+                while handle.waiting().iter().sum::<usize>() > 0 {
+                    std::thread::yield_now();
+                }
+                let start = Instant::now();
+                record::record_step(&handle, odo, black_box(&out), &pipeline);
+                total += start.elapsed();
+            }
+            total
+        })
+    });
+    group.finish();
+    let summary = writer.close().unwrap();
+    assert_eq!(summary.stats.dropped(), 0);
+}
+
+criterion_group!(benches, control_path, writer_thread, record_step);
 criterion_main!(benches);

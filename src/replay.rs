@@ -307,6 +307,7 @@ impl Replayer {
                 StepInputLog::FailSafe { .. } => {
                     self.pipeline.fail_safe();
                     self.last_fed = None;
+                    self.last_seq = None;
                     self.summary.fail_safes += 1;
                     // Without PAFSIS, the limiter and the previous frame are all the state there is.
                     if !self.has_mission {
@@ -516,8 +517,9 @@ mod tests {
         let mut out = Vec::new();
         json_diff("/offis/perception", &a, &b, &mut out);
         let fields: Vec<_> = out.iter().map(|d| d.field.as_str()).collect();
-        assert_eq!(fields, ["tpo.confidence", "m[1][0]"]);
-        assert_eq!(out[0].to_string(), "/offis/perception tpo.confidence: logged 0.5, replayed 0.25");
+        // Keys in serde_json's (sorted) order.
+        assert_eq!(fields, ["m[1][0]", "tpo.confidence"]);
+        assert_eq!(out[1].to_string(), "/offis/perception tpo.confidence: logged 0.5, replayed 0.25");
     }
 
     #[test]

@@ -30,6 +30,8 @@ struct Variant {
     tamper_seq: Option<u64>,
     /// Do not log the image of this seq (as the logger does when it falls behind).
     drop_image_seq: Option<u64>,
+    /// Cruise straight ahead instead of the office mission.
+    no_mission: bool,
 }
 
 fn calibration() -> Calibration {
@@ -72,14 +74,17 @@ fn jpeg(img: &LumaImage) -> Vec<u8> {
 fn record_run(path: &Path, images: &[LumaImage], v: Variant) {
     let cfg = config();
     let calib = calibration();
-    let (map, mission) = office_mission();
-    let mut options: LogOptions = record::run_options("sim", &cfg, &calib, Some(&mission.to_string()), None);
-    record::add_map(&mut options, &map);
+    let mission = (!v.no_mission).then(office_mission);
+    let name = mission.as_ref().map(|(_, m)| m.to_string());
+    let mut options: LogOptions = record::run_options("sim", &cfg, &calib, name.as_deref(), None);
+    if let Some((map, _)) = &mission {
+        record::add_map(&mut options, map);
+    }
     options.image_queue = images.len() + 1;
     let writer = LogWriter::create_at(path, options).unwrap();
     let h = writer.handle();
     h.calibration(0, &calib);
-    let mut pipeline = Pipeline::new(&cfg, calib, Some((map, mission))).unwrap();
+    let mut pipeline = Pipeline::new(&cfg, calib, mission).unwrap();
     let mut decoder = MjpegDecoder::new();
     for (i, img) in images.iter().enumerate() {
         let seq = i as u64;
@@ -156,6 +161,7 @@ fn a_recorded_run_replays_bit_for_bit_and_a_tampered_one_fails() {
     assert_eq!(seqs, want);
 
     let (ok, stdout, stderr) = replay_cli(&good);
+    eprint!("{stderr}");
     assert!(ok, "replay --check failed on a faithful log:\n{stderr}");
     assert_eq!(stdout.lines().count() as u64, expected_steps());
     let first: serde_json::Value = serde_json::from_str(stdout.lines().next().unwrap()).unwrap();
@@ -174,6 +180,7 @@ fn a_recorded_run_replays_bit_for_bit_and_a_tampered_one_fails() {
     assert_eq!(first.diffs.len(), 1, "{:?}", first.diffs);
     assert_eq!((first.diffs[0].topic.as_str(), first.diffs[0].field.as_str()), ("/control/setpoint", "omega"));
     let (ok, _, stderr) = replay_cli(&tampered);
+    eprint!("{stderr}");
     assert!(!ok, "replay --check passed a tampered log");
     assert!(stderr.contains("1 of 10 checked steps differ") && stderr.contains("omega"), "{stderr}");
 }
@@ -200,8 +207,19 @@ fn jpeg_frames_replay_through_the_decoder_and_dropped_images_are_reported_not_fa
     let unchecked: Vec<u64> =
         steps.iter().filter(|(_, c, _)| matches!(c, Check::Unchecked { .. })).map(|s| s.0).collect();
     assert_eq!(unchecked, [3, 4]);
+    // Flow and OFFIS keep no state between steps: after the gap they still match exactly; only
+    // what depends on history (PAFSIS progress → goal, the limiter → set-point) may differ.
+    for (seq, check, after_gap) in &steps {
+        if let Check::Mismatch { diffs } = check {
+            assert!(after_gap, "seq {seq} differs before the gap: {diffs:?}");
+            for d in diffs {
+                assert!(["/pafsis/goal", "/control/setpoint"].contains(&d.topic.as_str()), "seq {seq}: {d}");
+            }
+        }
+    }
     assert!(summary.first_unchecked.as_deref().unwrap().contains("not logged"), "{summary:?}");
     let (ok, _, stderr) = replay_cli(&path);
+    eprint!("{stderr}");
     assert!(ok, "{stderr}");
     assert!(stderr.contains("unchecked: 2 steps"), "{stderr}");
 }
@@ -219,4 +237,18 @@ fn a_log_without_the_run_setup_is_refused_with_a_clear_error() {
     .unwrap();
     let e = replay::replay(&[path], &ReplayOptions::default(), |_| {}).unwrap_err();
     assert!(e.to_string().contains("no flownav.config metadata record"), "{e}");
+}
+
+#[test]
+fn without_a_mission_a_logged_fail_safe_resynchronises_the_check() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("cruise.mcap");
+    record_run(&path, &frames(), Variant { no_mission: true, drop_image_seq: Some(2), ..Variant::default() });
+    let (summary, steps) = replay_lib(&path);
+    // Step 1 checked; 2 and 3 unchecked; 4..=6 after the gap; the fail-safe after 6 resets the
+    // limiter and the pairing (all the state there is without PAFSIS): 8..=11 checked again.
+    assert_eq!((summary.unchecked, summary.after_gap, summary.fail_safes), (2, 3, 1), "{summary:?}");
+    assert_eq!((summary.checked, summary.matched, summary.mismatched), (5, 5, 0), "{summary:?}");
+    let checked: Vec<u64> = steps.iter().filter(|(_, c, gap)| *c == Check::Match && !gap).map(|s| s.0).collect();
+    assert_eq!(checked, [1, 8, 9, 10, 11]);
 }

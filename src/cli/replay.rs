@@ -133,7 +133,7 @@ fn render(s: &ReplaySummary) -> String {
     }
     if s.unchecked > 0 {
         t += &format!(
-            "unchecked: {} steps (cannot check steps whose frame or previous frame was not logged; the logger dropped {} images)\n",
+            "unchecked: {} steps (cannot check steps whose frame or previous frame was not logged; the logger reported {} dropped images)\n",
             s.unchecked, s.dropped_images
         );
         if let Some(first) = &s.first_unchecked {
