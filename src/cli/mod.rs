@@ -7,10 +7,10 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
-pub mod devices;
 pub mod flow;
-pub mod log;
 pub mod render;
+pub mod devices;
+pub mod log;
 pub mod sim_base;
 
 #[derive(Debug, Parser)]
