@@ -7,10 +7,11 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
-pub mod flow;
-pub mod render;
 pub mod devices;
+pub mod flow;
 pub mod log;
+pub mod render;
+pub mod replay;
 pub mod sim_base;
 
 #[derive(Debug, Parser)]
@@ -66,6 +67,8 @@ pub enum Command {
     Log(log::Args),
     /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
     SimBase(sim_base::Args),
+    /// Re-run the pipeline on a run log's frames and odometry; --check compares with the logged outputs.
+    Replay(replay::Args),
 }
 
 /// Runs one parsed command line.
@@ -76,6 +79,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Devices(args) => devices::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
         Command::SimBase(args) => sim_base::run(args, &cli.common),
+        Command::Replay(args) => replay::run(args, &cli.common),
     }
 }
 
@@ -86,7 +90,9 @@ pub fn init_tracing(verbose: u8) {
         1 => "debug",
         _ => "trace",
     };
+    // wgpu's GL probe logs driver-loading errors on machines without a GPU; they are not ours.
+    let default = format!("{default},wgpu_hal=off,wgpu_core=warn,naga=warn");
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(&default));
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
 }
