@@ -42,7 +42,8 @@ pub mod odometry;
 pub mod reopen;
 pub mod slot;
 
-use crate::logging::{LogHandle, LogLevel, SetpointLog};
+use crate::logging::record::{RecordImage, record_failsafe, record_frame, record_step};
+use crate::logging::{LogHandle, LogLevel};
 use crate::step::Pipeline;
 use hal::camera::monotonic_ns;
 use hal::{BaseEvent, BodyVelocity, Camera, Error, ErrorKind, LinkStats, MotorBase};
@@ -183,7 +184,6 @@ enum Msg {
         seq: u64,
         t_ns: u64,
         setpoint: BodyVelocity,
-        requested: BodyVelocity,
     },
     StepFailed {
         seq: u64,
@@ -246,8 +246,10 @@ where
     let (tx, mut rx) = mpsc::unbounded_channel();
 
     let step_thread = {
-        let (shared, tx, stall) = (shared.clone(), tx.clone(), opts.stall);
-        std::thread::Builder::new().name("flownav-step".into()).spawn(move || step_loop(pipeline, &shared, &tx, stall))
+        let (shared, tx, stall, logger) = (shared.clone(), tx.clone(), opts.stall, logger.clone());
+        std::thread::Builder::new()
+            .name("flownav-step".into())
+            .spawn(move || step_loop(pipeline, &shared, &tx, stall, logger.as_ref()))
     };
     let step_thread = match step_thread {
         Ok(t) => t,
@@ -470,7 +472,8 @@ impl Control {
             self.failsafe_stops += 1;
             tracing::warn!("fail-safe stop ({why:?}): {detail}");
             if let Some(log) = &self.logger {
-                log.log(monotonic_ns(), LogLevel::Warning, format!("fail-safe stop ({why:?}): {detail}"));
+                let message = format!("runtime: zero set-point sent ({why:?}): {detail}");
+                log.log(monotonic_ns(), LogLevel::Warning, message);
             }
         }
         self.send(base, BodyVelocity::ZERO);
@@ -478,7 +481,7 @@ impl Control {
 
     fn on_msg<B: MotorBase>(&mut self, base: &mut B, msg: Msg) -> Option<Result<EndReason, RuntimeError>> {
         match msg {
-            Msg::Setpoint { seq, t_ns, setpoint, requested } => {
+            Msg::Setpoint { seq, t_ns, setpoint } => {
                 let expires = instant_at(t_ns.saturating_add(self.stall.as_nanos() as u64));
                 if expires <= Instant::now() {
                     let detail = format!("the set-point of frame {seq} is older than the stall time");
@@ -496,11 +499,6 @@ impl Control {
                         latency_us = latency / 1000,
                         "set-point"
                     );
-                }
-                if let Some(log) = &self.logger {
-                    let clamped = requested != setpoint;
-                    let requested = clamped.then_some(requested);
-                    log.setpoint(t_ns, &SetpointLog { v: setpoint.v, omega: setpoint.omega, clamped, requested });
                 }
             }
             Msg::StepFailed { seq, error } => {
@@ -589,7 +587,16 @@ fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
 }
 
 /// The step thread: takes the newest frame, steps it, reports to the control task.
-fn step_loop(mut pipeline: Pipeline, shared: &Shared, tx: &mpsc::UnboundedSender<Msg>, stall: Duration) {
+///
+/// With a logger, every frame's image, every step and every `fail_safe` call are recorded
+/// through [`crate::logging::record`], so `flownav replay` can re-run the log bit for bit.
+fn step_loop(
+    mut pipeline: Pipeline,
+    shared: &Shared,
+    tx: &mpsc::UnboundedSender<Msg>,
+    stall: Duration,
+    logger: Option<&LogHandle>,
+) {
     let mut stalled = false;
     loop {
         let frame = match shared.slot.take(stall) {
@@ -598,6 +605,9 @@ fn step_loop(mut pipeline: Pipeline, shared: &Shared, tx: &mpsc::UnboundedSender
                 if !stalled {
                     stalled = true;
                     pipeline.fail_safe();
+                    if let Some(h) = logger {
+                        record_failsafe(h, monotonic_ns(), "no frame within the stall time");
+                    }
                     let _ = tx.send(Msg::Stalled);
                 }
                 continue;
@@ -615,15 +625,27 @@ fn step_loop(mut pipeline: Pipeline, shared: &Shared, tx: &mpsc::UnboundedSender
             .for_frame(frame.t_ns)
             .map_or(BodyVelocity::ZERO, |o| o.velocity);
         let (seq, t_ns) = (frame.seq, frame.t_ns);
+        if let Some(h) = logger {
+            record_frame(h, &frame, RecordImage::Mono8(&frame.image));
+        }
         let outcome = catch_unwind(AssertUnwindSafe(|| pipeline.step(frame, velocity)));
         shared.counters.processed.fetch_add(1, Ordering::Relaxed);
         let msg = match outcome {
-            Ok(Ok(Some(out))) => Msg::Setpoint { seq, t_ns, setpoint: out.setpoint(), requested: out.mofis.fused },
+            Ok(Ok(Some(out))) => {
+                if let Some(h) = logger {
+                    record_step(h, velocity, &out, &pipeline);
+                }
+                Msg::Setpoint { seq, t_ns, setpoint: out.setpoint() }
+            }
             Ok(Ok(None)) => continue,
             Ok(Err(e)) => {
                 shared.counters.step_failures.fetch_add(1, Ordering::Relaxed);
                 pipeline.fail_safe();
-                Msg::StepFailed { seq, error: e.to_string() }
+                let error = e.to_string();
+                if let Some(h) = logger {
+                    record_failsafe(h, t_ns, &format!("step failed on frame {seq}: {error}"));
+                }
+                Msg::StepFailed { seq, error }
             }
             Err(p) => {
                 let _ = tx.send(Msg::StepPanicked(panic_message(p.as_ref())));
