@@ -95,7 +95,9 @@ fn pipeline() -> Pipeline {
 fn scene(width: usize, height: usize, shift: f64) -> LumaImage {
     LumaImage::from_fn(width, height, |x, y| {
         let (x, y) = (x as f64 + shift, y as f64);
-        let v = 128.0 + 45.0 * (0.31 * x + 0.17 * y).sin() + 35.0 * (0.11 * x - 0.23 * y).sin()
+        let v = 128.0
+            + 45.0 * (0.31 * x + 0.17 * y).sin()
+            + 35.0 * (0.11 * x - 0.23 * y).sin()
             + 25.0 * (0.53 * x * 0.7 + 0.41 * y).cos();
         v.clamp(0.0, 255.0) as u8
     })
@@ -255,10 +257,7 @@ async fn a_failed_step_sends_a_zero_setpoint_and_the_run_goes_on() {
     assert!(rx.iter().any(|r| r.host_ns < odd_ns && is_moving(r)), "moving before the bad frame");
     let zero = rx.iter().find(|r| r.host_ns > odd_ns && !is_moving(r)).expect("a zero after the bad frame");
     assert!((zero.host_ns - odd_ns) as f64 * 1e-6 <= 200.0);
-    assert!(
-        rx.iter().any(|r| r.host_ns > zero.host_ns && is_moving(r)),
-        "set-points resume with the next good frames"
-    );
+    assert!(rx.iter().any(|r| r.host_ns > zero.host_ns && is_moving(r)), "set-points resume with the next good frames");
     assert!(report.failsafe_stops >= 1);
 }
 

@@ -85,9 +85,12 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     };
     let map_for_log = mission.as_ref().map(|(map, _)| map.clone());
     let pipeline = Pipeline::new(&cfg, calib.clone(), mission).context("building the pipeline")?;
-    tracing::info!(backend = ?pipeline.backend(), "flow backend");
+    let backend = pipeline.backend();
+    tracing::info!("flow backend {}: {}", backend.engine, backend.reason);
 
-    let camera = open_camera(&camera_spec, &cfg.camera).with_context(|| format!("opening the camera {camera_spec}"))?;
+    // The source errors name the camera and the fix; their text already includes their causes.
+    let camera =
+        open_camera(&camera_spec, &cfg.camera).map_err(|e| anyhow::anyhow!("opening the camera {camera_spec}: {e}"))?;
     let reopen = {
         let (spec, cam_cfg) = (camera_spec.clone(), cfg.camera.clone());
         move || open_camera(&spec, &cam_cfg)
@@ -110,7 +113,8 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
                     watchdog_ms: cfg.base.watchdog_ms,
                     ..FnpConfig::new(base_spec.port.clone())
                 };
-                let base = FnpBase::connect(fnp).await.with_context(|| format!("connecting to the base {base_spec}"))?;
+                let base =
+                    FnpBase::connect(fnp).await.with_context(|| format!("connecting to the base {base_spec}"))?;
                 drive(camera, base, pipeline, &cfg, logging, args.duration).await
             }
             BaseKind::Kobuki => {

@@ -216,4 +216,19 @@ mod tests {
         assert!(toml::from_str::<Config>("[base]\nkind = \"roomba\"\n").is_err());
         assert!(toml::from_str::<Config>("[run]\nbogus = 1\n").is_err());
     }
+
+    #[test]
+    fn the_example_config_loads_and_shows_the_defaults() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/robot.example.toml");
+        let cfg = Config::load(path).unwrap();
+        let text = std::fs::read_to_string(path).unwrap();
+        for table in ["camera", "base", "run", "control", "flow", "offis.outlier", "offis.plane", "offis.tilt"] {
+            assert!(text.contains(&format!("[{table}]")), "the example documents [{table}]");
+        }
+        // Everything is the default except the two udev names marked "robot".
+        let mut expected = Config::default();
+        expected.camera.device = "/dev/flownav-camera".into();
+        expected.base.port = "/dev/flownav-base".into();
+        assert_eq!(cfg, expected);
+    }
 }
