@@ -121,6 +121,9 @@ impl Error for CamError {
     }
 }
 
+/// (capture stamp ns, width) of each delivered frame.
+type Delivered = Arc<Mutex<Vec<(u64, usize)>>>;
+
 /// Frames at `fps`, stamped on the monotonic clock when delivered; frame `odd_size_at` (if
 /// any) is smaller than the rest. Records each delivered frame's stamp and size.
 struct TestCamera {
@@ -130,11 +133,11 @@ struct TestCamera {
     odd_size_at: Option<u64>,
     seq: u64,
     next_ns: Option<u64>,
-    delivered: Arc<Mutex<Vec<(u64, usize)>>>,
+    delivered: Delivered,
 }
 
 impl TestCamera {
-    fn new(fps: f64, frames: u64, then: Then) -> (Self, Arc<Mutex<Vec<(u64, usize)>>>) {
+    fn new(fps: f64, frames: u64, then: Then) -> (Self, Delivered) {
         let delivered = Arc::new(Mutex::new(Vec::new()));
         let cam = Self { fps, frames, then, odd_size_at: None, seq: 0, next_ns: None, delivered: delivered.clone() };
         (cam, delivered)
