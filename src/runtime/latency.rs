@@ -72,7 +72,8 @@ impl LatencyHistogram {
     }
 
     pub fn summary(&self) -> LatencySummary {
-        let ms = |ns: Option<u64>| ns.map_or(0.0, |n| n as f64 * 1e-6);
+        // Rounded to the microsecond: finer digits would only be float noise in the report.
+        let ms = |ns: Option<u64>| ns.map_or(0.0, |n| (n as f64 / 1e3).round() / 1e3);
         LatencySummary {
             count: self.count,
             median_ms: ms(self.quantile_ns(0.5)),

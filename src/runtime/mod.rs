@@ -154,6 +154,11 @@ pub struct RunReport {
     pub status_events: u64,
     /// Capture → `set_velocity` returned, for every set-point computed from a frame.
     pub latency: LatencySummary,
+    /// Wall-clock time of `Pipeline::step` per frame (the part of the latency that is the step).
+    pub step_wall: LatencySummary,
+    /// CPU time of the step thread per step (`CLOCK_THREAD_CPUTIME_ID`): what the step costs on
+    /// an idle core, where `step_wall` also counts waiting for a core on a loaded machine.
+    pub step_cpu: LatencySummary,
     /// The driver's link counters at the end.
     #[serde(skip)]
     pub link: LinkStats,
@@ -212,6 +217,8 @@ struct Shared {
     slot: FrameSlot,
     counters: Counters,
     odometry: Mutex<OdometryHistory>,
+    /// Step durations: (wall, thread CPU).
+    step_times: Mutex<(LatencyHistogram, LatencyHistogram)>,
     stop: AtomicBool,
 }
 
@@ -241,6 +248,7 @@ where
         slot: FrameSlot::new(),
         counters: Counters::default(),
         odometry: Mutex::new(OdometryHistory::new(128)),
+        step_times: Mutex::new((LatencyHistogram::new(), LatencyHistogram::new())),
         stop: AtomicBool::new(false),
     });
     let (tx, mut rx) = mpsc::unbounded_channel();
@@ -286,6 +294,7 @@ where
     }
 
     let c = &shared.counters;
+    let step_times = shared.step_times.lock().unwrap_or_else(|e| e.into_inner()).clone();
     let link = base.link_stats();
     let report = |ended| RunReport {
         ended,
@@ -303,6 +312,8 @@ where
         odometry_events: control.odometry_events,
         status_events: control.status_events,
         latency: control.latency.summary(),
+        step_wall: step_times.0.summary(),
+        step_cpu: step_times.1.summary(),
         link,
         base_disconnects: link.disconnects,
     };
@@ -312,6 +323,8 @@ where
     };
     let r = report(ended);
     tracing::info!(
+        step_wall_median_ms = r.step_wall.median_ms,
+        step_cpu_median_ms = r.step_cpu.median_ms,
         frames = r.frames_processed,
         dropped = r.frames_dropped,
         failsafe_stops = r.failsafe_stops,
@@ -628,7 +641,14 @@ fn step_loop(
         if let Some(h) = logger {
             record_frame(h, &frame, RecordImage::Mono8(&frame.image));
         }
+        let (wall0, cpu0) = (monotonic_ns(), thread_cpu_ns());
         let outcome = catch_unwind(AssertUnwindSafe(|| pipeline.step(frame, velocity)));
+        {
+            let (wall, cpu) = (monotonic_ns().saturating_sub(wall0), thread_cpu_ns().saturating_sub(cpu0));
+            let mut times = shared.step_times.lock().unwrap_or_else(|e| e.into_inner());
+            times.0.record(wall);
+            times.1.record(cpu);
+        }
         shared.counters.processed.fetch_add(1, Ordering::Relaxed);
         let msg = match outcome {
             Ok(Ok(Some(out))) => {
@@ -708,6 +728,14 @@ fn camera_loop<C: Camera>(mut camera: C, shared: &Shared, tx: &mpsc::UnboundedSe
                 return;
             }
         }
+    }
+}
+
+/// CPU time of the calling thread, ns (0 if the clock cannot be read).
+fn thread_cpu_ns() -> u64 {
+    match nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID) {
+        Ok(ts) => ts.tv_sec() as u64 * 1_000_000_000 + ts.tv_nsec() as u64,
+        Err(_) => 0,
     }
 }
 
