@@ -31,6 +31,10 @@ pub struct Config {
     pub control: ControlLimits,
     /// `[camera]`: the V4L2 device and the mode to negotiate (see docs/camera.md).
     pub camera: CameraConfig,
+    /// `[base]`: the motor base's protocol, port and link settings (see docs/deploy.md).
+    pub base: crate::runtime::config::BaseConfig,
+    /// `[run]`: the runtime's stall time and run logs (see docs/deploy.md).
+    pub run: crate::runtime::config::RunConfig,
 }
 
 impl Config {
@@ -50,6 +54,8 @@ impl Config {
         self.pafsis.validate()?;
         self.mofis.validate()?;
         self.control.validate()?;
+        self.base.validate()?;
+        self.run.validate()?;
         self.camera
             .validate()
             .map_err(|e| ConfigError::Invalid { field: format!("camera.{}", e.field), problem: e.problem })?;

@@ -15,6 +15,7 @@
 //! | [`control`] | set-point safety limiter: speed, turn rate, acceleration | |
 //! | [`sources`] | where `run` gets frames: `--camera /dev/videoN` (V4L2) or `frames:DIR` played as a camera | |
 //! | [`logging`] | MCAP run logs for Foxglove: the non-blocking writer, the replay reader, `log info` | |
+//! | [`runtime`] | `flownav run`: camera thread → step thread → base, latest-frame-wins, set-point expiry and stops, latency | |
 //! | [`step`] | the pure per-frame step: flow → OFFIS → PAFSIS → MOFIS → set-point (shared by run, sim, analyze, replay) | Fig. 3 |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
@@ -33,5 +34,6 @@ pub mod offis;
 pub mod pafsis;
 pub mod perception;
 pub mod replay;
+pub mod runtime;
 pub mod sources;
 pub mod step;

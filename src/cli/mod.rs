@@ -12,6 +12,7 @@ pub mod flow;
 pub mod log;
 pub mod render;
 pub mod replay;
+pub mod run;
 pub mod sim_base;
 
 #[derive(Debug, Parser)]
@@ -65,6 +66,8 @@ pub enum Command {
     Devices(devices::Args),
     /// Inspect MCAP run logs (`log info LOG`).
     Log(log::Args),
+    /// Drive a robot: camera → optical flow → OFFIS/PAFSIS/MOFIS → serial motor base (docs/deploy.md).
+    Run(run::Args),
     /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
     SimBase(sim_base::Args),
     /// Re-run the pipeline on a run log's frames and odometry; --check compares with the logged outputs.
@@ -79,6 +82,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Devices(args) => devices::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
         Command::SimBase(args) => sim_base::run(args, &cli.common),
+        Command::Run(args) => run::run(args, &cli.common),
         Command::Replay(args) => replay::run(args, &cli.common),
     }
 }

@@ -1,0 +1,751 @@
+//! The async runtime of `flownav run`: camera → step → base, and the safety rules around it.
+//!
+//! [`run`] takes its world as arguments (STYLE.md "pass the world in"): a camera, a motor base,
+//! the per-frame [`Pipeline`], an optional MCAP logger and a shutdown future. Tests hand in a
+//! simulated base on a pseudo-terminal and an in-test camera; the CLI hands in the real ones.
+//!
+//! ```text
+//!  camera thread ──put──▶ FrameSlot ──take──▶ step thread ──msg──▶ control task (async) ──▶ MotorBase
+//!  (blocking capture)   (latest wins,         (Pipeline::step,     (set-points, expiry,      (driver task
+//!                        stale dropped)        catch_unwind)        odometry, shutdown)        writes bytes)
+//! ```
+//!
+//! - **Camera** on a dedicated thread (`capture` blocks). Frames go through a one-frame
+//!   [`slot::FrameSlot`]: a frame the step has not taken yet is replaced by the newer one and
+//!   counted as dropped, so a slow step never builds a queue.
+//! - **Step** on a second dedicated thread, never on the async threads. Each frame is stepped
+//!   with the measured velocity of the latest odometry stamped at or before the frame's capture
+//!   ([`odometry::OdometryHistory`]). A panic in the step is caught: the robot is stopped and the
+//!   run ends with [`RuntimeError::StepPanicked`].
+//! - **Control** in the caller's task: sends each new set-point at once, refreshes the current
+//!   command at `setpoint_rate_hz` (≥ 20 Hz; drivers zero commands that are not refreshed), and
+//!   enforces the safety rules below. Base events (odometry, status, link loss) are read here.
+//!
+//! Safety rules (DESIGN.md "Safety is a feature with tests"):
+//! - A set-point **expires `stall` after the capture of the frame it was computed from**
+//!   (default 150 ms). At expiry a zero set-point goes out at once, so a camera stall or a step
+//!   slower than `stall` stops the robot within `stall` (< 200 ms) of the last frame.
+//! - A step error (bad frame, flow failure) → zero set-point at once ([`Pipeline::fail_safe`]).
+//! - Camera `Disconnected` → zero at once; the camera thread calls `capture` again with
+//!   exponential back-off (wrap the camera in [`reopen::ReopeningCamera`] to reopen the device).
+//! - Camera `EndOfStream` (a frame folder played to its end) → STOP, the run ends normally.
+//! - Camera `Unsupported`/`Other` (a human must fix it) → STOP, the run ends with an error.
+//! - Base `Disconnected` → the driver reconnects on its own; the runtime keeps refreshing and
+//!   commands resume when the link is back.
+//! - The shutdown future (Ctrl-C, SIGTERM, `--duration`) → STOP, the run ends normally.
+//! - On every exit path the base gets `stop()` and is then dropped (drivers write STOP on drop,
+//!   also while a panic unwinds).
+
+pub mod config;
+pub mod latency;
+pub mod odometry;
+pub mod reopen;
+pub mod slot;
+
+use crate::logging::record::{RecordImage, record_failsafe, record_frame, record_step};
+use crate::logging::{LogHandle, LogLevel};
+use crate::step::Pipeline;
+use hal::camera::monotonic_ns;
+use hal::{BaseEvent, BodyVelocity, Camera, Error, ErrorKind, LinkStats, MotorBase};
+use latency::{LatencyHistogram, LatencySummary};
+use odometry::OdometryHistory;
+use serde::Serialize;
+use slot::{Closed, FrameSlot, Taken};
+use std::future::Future;
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::mpsc;
+use tokio::time::{Instant, MissedTickBehavior};
+
+/// How the runtime behaves; [`RuntimeOptions::default`] is what `flownav run` uses without a
+/// config file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RuntimeOptions {
+    /// How often the current command is refreshed when no new set-point came, Hz (20..=1000).
+    pub setpoint_rate_hz: f64,
+    /// A set-point expires this long after its frame's capture (40..=190 ms).
+    pub stall: Duration,
+    /// First wait before calling `capture` again after the camera disconnected.
+    pub camera_backoff_initial: Duration,
+    /// The wait doubles after each failed attempt up to this.
+    pub camera_backoff_max: Duration,
+}
+
+impl Default for RuntimeOptions {
+    fn default() -> Self {
+        Self {
+            setpoint_rate_hz: 25.0,
+            stall: Duration::from_millis(150),
+            camera_backoff_initial: Duration::from_millis(100),
+            camera_backoff_max: Duration::from_millis(3200),
+        }
+    }
+}
+
+impl RuntimeOptions {
+    /// The options the `[base]` and `[run]` config tables give.
+    pub fn from_config(cfg: &crate::config::Config) -> Self {
+        Self {
+            setpoint_rate_hz: cfg.base.setpoint_rate_hz,
+            stall: Duration::from_millis(cfg.run.stall_ms),
+            ..Self::default()
+        }
+    }
+
+    fn validate(&self) -> Result<(), RuntimeError> {
+        if !(self.setpoint_rate_hz.is_finite() && (20.0..=1000.0).contains(&self.setpoint_rate_hz)) {
+            return Err(RuntimeError::Options(format!(
+                "setpoint_rate_hz = {} must be in 20..=1000 Hz",
+                self.setpoint_rate_hz
+            )));
+        }
+        if !(Duration::from_millis(40)..=Duration::from_millis(190)).contains(&self.stall) {
+            return Err(RuntimeError::Options(format!(
+                "stall = {} ms must be in 40..=190 ms (the robot must stop within 200 ms of the last frame)",
+                self.stall.as_millis()
+            )));
+        }
+        if self.camera_backoff_initial.is_zero() || self.camera_backoff_max < self.camera_backoff_initial {
+            return Err(RuntimeError::Options("camera back-off: need 0 < initial ≤ max".into()));
+        }
+        Ok(())
+    }
+}
+
+/// Why a run ended normally.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EndReason {
+    /// The camera's source ended (`frames:DIR` played to its end).
+    EndOfStream,
+    /// The shutdown future completed (Ctrl-C, SIGTERM, `--duration`).
+    Shutdown,
+}
+
+/// What a run did; logged at exit and returned by [`run`].
+#[derive(Clone, Debug, Serialize)]
+pub struct RunReport {
+    pub ended: EndReason,
+    pub duration_s: f64,
+    /// Frames the camera delivered.
+    pub frames_captured: u64,
+    /// Frames that went through the step.
+    pub frames_processed: u64,
+    /// Frames replaced in the slot before the step took them (latest-frame-wins).
+    pub frames_dropped: u64,
+    /// Corrupt frames the camera skipped (`BadData`).
+    pub frames_bad: u64,
+    /// Stall timeouts the camera reported (no frame within its stall timeout).
+    pub camera_timeouts: u64,
+    /// Times the camera went away.
+    pub camera_disconnects: u64,
+    /// Steps that failed (each gave a zero set-point).
+    pub step_failures: u64,
+    /// Times the runtime forced a zero set-point while it had a valid command: expiry (stall or
+    /// slow step), step failure, camera disconnect.
+    pub failsafe_stops: u64,
+    /// `set_velocity` calls that succeeded (new set-points, refreshes and zeros).
+    pub setpoints_sent: u64,
+    /// `set_velocity` calls the driver refused (link down).
+    pub setpoints_refused: u64,
+    pub odometry_events: u64,
+    pub status_events: u64,
+    /// Capture → `set_velocity` returned, for every set-point computed from a frame.
+    pub latency: LatencySummary,
+    /// Wall-clock time of `Pipeline::step` per frame (the part of the latency that is the step).
+    pub step_wall: LatencySummary,
+    /// CPU time of the step thread per step (`CLOCK_THREAD_CPUTIME_ID`): what the step costs on
+    /// an idle core, where `step_wall` also counts waiting for a core on a loaded machine.
+    pub step_cpu: LatencySummary,
+    /// The driver's link counters at the end.
+    #[serde(skip)]
+    pub link: LinkStats,
+    /// `link.disconnects`, for the JSON summary.
+    pub base_disconnects: u64,
+}
+
+/// Why a run failed. In every case the base was told to stop before `run` returned.
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeError {
+    #[error("runtime options: {0}")]
+    Options(String),
+    #[error("{0} (the robot was stopped)")]
+    Camera(String),
+    #[error("the per-frame step panicked: {0} (the robot was stopped); this is a bug, please report it")]
+    StepPanicked(String),
+    #[error("cannot start the {what} thread: {source}")]
+    Thread { what: &'static str, source: std::io::Error },
+    #[error("the step thread ended unexpectedly (the robot was stopped)")]
+    StepThreadLost,
+}
+
+/// From the camera and step threads to the control task.
+#[derive(Debug)]
+enum Msg {
+    /// A set-point computed from the frame captured at `t_ns`.
+    Setpoint {
+        seq: u64,
+        t_ns: u64,
+        setpoint: BodyVelocity,
+    },
+    StepFailed {
+        seq: u64,
+        error: String,
+    },
+    /// No frame within `stall` (the step thread's view).
+    Stalled,
+    CameraDown(String),
+    CameraUp,
+    Ended(Closed),
+    StepPanicked(String),
+}
+
+#[derive(Debug, Default)]
+struct Counters {
+    captured: AtomicU64,
+    processed: AtomicU64,
+    bad: AtomicU64,
+    timeouts: AtomicU64,
+    camera_disconnects: AtomicU64,
+    step_failures: AtomicU64,
+}
+
+/// What the threads share with the control task.
+struct Shared {
+    slot: FrameSlot,
+    counters: Counters,
+    odometry: Mutex<OdometryHistory>,
+    /// Step durations: (wall, thread CPU).
+    step_times: Mutex<(LatencyHistogram, LatencyHistogram)>,
+    stop: AtomicBool,
+}
+
+/// Runs the robot until the camera's source ends, `shutdown` completes, or a fatal error.
+///
+/// Must be called inside a tokio runtime (the base drivers need one). See the module docs for
+/// the threads and the safety rules; `opts` must be valid (`setpoint_rate_hz` 20..=1000,
+/// `stall` 40..=190 ms). `base.next_event` must be cancel-safe (the hal drivers' are).
+pub async fn run<C, B>(
+    camera: C,
+    mut base: B,
+    pipeline: Pipeline,
+    logger: Option<LogHandle>,
+    shutdown: impl Future<Output = ()>,
+    opts: RuntimeOptions,
+) -> Result<RunReport, RuntimeError>
+where
+    C: Camera + 'static,
+    B: MotorBase + 'static,
+{
+    let started = Instant::now();
+    if let Err(e) = opts.validate() {
+        let _ = base.stop();
+        return Err(e);
+    }
+    let shared = Arc::new(Shared {
+        slot: FrameSlot::new(),
+        counters: Counters::default(),
+        odometry: Mutex::new(OdometryHistory::new(128)),
+        step_times: Mutex::new((LatencyHistogram::new(), LatencyHistogram::new())),
+        stop: AtomicBool::new(false),
+    });
+    let (tx, mut rx) = mpsc::unbounded_channel();
+
+    let step_thread = {
+        let (shared, tx, stall, logger) = (shared.clone(), tx.clone(), opts.stall, logger.clone());
+        std::thread::Builder::new()
+            .name("flownav-step".into())
+            .spawn(move || step_loop(pipeline, &shared, &tx, stall, logger.as_ref()))
+    };
+    let step_thread = match step_thread {
+        Ok(t) => t,
+        Err(source) => {
+            let _ = base.stop();
+            return Err(RuntimeError::Thread { what: "step", source });
+        }
+    };
+    let camera_thread = {
+        let (shared, tx, opts) = (shared.clone(), tx.clone(), opts.clone());
+        std::thread::Builder::new()
+            .name("flownav-camera".into())
+            .spawn(move || camera_loop(camera, &shared, &tx, &opts))
+    };
+    drop(tx);
+    if let Err(source) = camera_thread {
+        shared.slot.close(Closed::Shutdown);
+        let _ = base.stop();
+        return Err(RuntimeError::Thread { what: "camera", source });
+    }
+
+    let mut control = Control::new(&opts, shared.clone(), logger);
+    let result = control.run(&mut base, &mut rx, shutdown).await;
+
+    // Stop first, then tidy up: the camera thread ends after its current capture (it is not
+    // joined: a capture may block up to the camera's stall timeout), the step thread after its
+    // current step.
+    let _ = base.stop();
+    shared.stop.store(true, Ordering::Relaxed);
+    shared.slot.close(Closed::Shutdown);
+    let joined = tokio::task::spawn_blocking(move || step_thread.join());
+    if tokio::time::timeout(Duration::from_secs(2), joined).await.is_err() {
+        tracing::warn!("the step thread did not end within 2 s; leaving it behind");
+    }
+
+    let c = &shared.counters;
+    let step_times = shared.step_times.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let link = base.link_stats();
+    let report = |ended| RunReport {
+        ended,
+        duration_s: started.elapsed().as_secs_f64(),
+        frames_captured: c.captured.load(Ordering::Relaxed),
+        frames_processed: c.processed.load(Ordering::Relaxed),
+        frames_dropped: shared.slot.dropped(),
+        frames_bad: c.bad.load(Ordering::Relaxed),
+        camera_timeouts: c.timeouts.load(Ordering::Relaxed),
+        camera_disconnects: c.camera_disconnects.load(Ordering::Relaxed),
+        step_failures: c.step_failures.load(Ordering::Relaxed),
+        failsafe_stops: control.failsafe_stops,
+        setpoints_sent: control.sent,
+        setpoints_refused: control.refused,
+        odometry_events: control.odometry_events,
+        status_events: control.status_events,
+        latency: control.latency.summary(),
+        step_wall: step_times.0.summary(),
+        step_cpu: step_times.1.summary(),
+        link,
+        base_disconnects: link.disconnects,
+    };
+    let ended = match &result {
+        Ok(e) => *e,
+        Err(_) => EndReason::Shutdown,
+    };
+    let r = report(ended);
+    tracing::info!(
+        step_wall_median_ms = r.step_wall.median_ms,
+        step_cpu_median_ms = r.step_cpu.median_ms,
+        frames = r.frames_processed,
+        dropped = r.frames_dropped,
+        failsafe_stops = r.failsafe_stops,
+        "latency capture → set-point: median {:.2} ms, p90 {:.2} ms, max {:.2} ms over {} set-points",
+        r.latency.median_ms,
+        r.latency.p90_ms,
+        r.latency.max_ms,
+        r.latency.count
+    );
+    if let Some(log) = &control.logger {
+        log.log(
+            monotonic_ns(),
+            LogLevel::Info,
+            format!(
+                "run ended: {} frames, {} dropped, {} fail-safe stops; latency median {:.2} ms p90 {:.2} ms max {:.2} ms",
+                r.frames_processed,
+                r.frames_dropped,
+                r.failsafe_stops,
+                r.latency.median_ms,
+                r.latency.p90_ms,
+                r.latency.max_ms
+            ),
+        );
+    }
+    // Dropping the driver writes one more STOP, synchronously.
+    drop(base);
+    result.map(|_| r)
+}
+
+/// Why the runtime forced a zero set-point.
+#[derive(Clone, Copy, Debug)]
+enum Failsafe {
+    Expired,
+    StepFailed,
+    CameraDown,
+}
+
+/// The current command and the moment it stops being valid.
+#[derive(Clone, Copy, Debug)]
+struct Command {
+    setpoint: BodyVelocity,
+    expires: Instant,
+}
+
+struct Control {
+    period: Duration,
+    stall: Duration,
+    shared: Arc<Shared>,
+    logger: Option<LogHandle>,
+    command: Option<Command>,
+    latency: LatencyHistogram,
+    failsafe_stops: u64,
+    sent: u64,
+    refused: u64,
+    odometry_events: u64,
+    status_events: u64,
+    base_down: bool,
+    events_failing: bool,
+    last_status: Option<hal::BaseStatus>,
+}
+
+/// A tokio instant for a time on the monotonic clock frames are stamped with.
+fn instant_at(t_ns: u64) -> Instant {
+    let (now, now_ns) = (Instant::now(), monotonic_ns());
+    if t_ns >= now_ns {
+        now + Duration::from_nanos(t_ns - now_ns)
+    } else {
+        now.checked_sub(Duration::from_nanos(now_ns - t_ns)).unwrap_or(now)
+    }
+}
+
+impl Control {
+    fn new(opts: &RuntimeOptions, shared: Arc<Shared>, logger: Option<LogHandle>) -> Self {
+        Self {
+            period: Duration::from_secs_f64(1.0 / opts.setpoint_rate_hz),
+            stall: opts.stall,
+            shared,
+            logger,
+            command: None,
+            latency: LatencyHistogram::new(),
+            failsafe_stops: 0,
+            sent: 0,
+            refused: 0,
+            odometry_events: 0,
+            status_events: 0,
+            base_down: false,
+            events_failing: false,
+            last_status: None,
+        }
+    }
+
+    async fn run<B: MotorBase>(
+        &mut self,
+        base: &mut B,
+        rx: &mut mpsc::UnboundedReceiver<Msg>,
+        shutdown: impl Future<Output = ()>,
+    ) -> Result<EndReason, RuntimeError> {
+        tokio::pin!(shutdown);
+        let mut tick = tokio::time::interval(self.period);
+        tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
+        // The robot stands still until the first set-point.
+        self.send(base, BodyVelocity::ZERO);
+        tick.reset();
+        loop {
+            let expires = self.command.map(|c| c.expires);
+            let events_pause = self.events_failing;
+            tokio::select! {
+                biased;
+                () = &mut shutdown => {
+                    tracing::info!("shutdown requested: stopping the robot");
+                    return Ok(EndReason::Shutdown);
+                }
+                msg = rx.recv() => {
+                    let Some(msg) = msg else { return Err(RuntimeError::StepThreadLost) };
+                    if let Some(end) = self.on_msg(base, msg) {
+                        return end;
+                    }
+                    tick.reset();
+                }
+                () = tokio::time::sleep_until(expires.unwrap_or_else(Instant::now)), if expires.is_some() => {
+                    self.failsafe(base, Failsafe::Expired, "no new set-point within the stall time");
+                    tick.reset();
+                }
+                _ = tick.tick() => {
+                    let cmd = self.command.map_or(BodyVelocity::ZERO, |c| c.setpoint);
+                    self.send(base, cmd);
+                }
+                ev = next_event(base, events_pause) => self.on_event(ev),
+            }
+        }
+    }
+
+    /// Sends `cmd`; returns whether the driver took it.
+    fn send<B: MotorBase>(&mut self, base: &mut B, cmd: BodyVelocity) -> bool {
+        match base.set_velocity(cmd) {
+            Ok(()) => {
+                self.sent += 1;
+                if self.base_down {
+                    self.base_down = false;
+                    tracing::info!("base link is back: set-points resume");
+                }
+                true
+            }
+            Err(e) => {
+                self.refused += 1;
+                if !self.base_down {
+                    self.base_down = true;
+                    tracing::warn!("base refuses set-points: {e}; retrying at the set-point rate");
+                }
+                false
+            }
+        }
+    }
+
+    /// Forces a zero set-point now. Counted when it replaces a valid command.
+    fn failsafe<B: MotorBase>(&mut self, base: &mut B, why: Failsafe, detail: &str) {
+        if self.command.take().is_some() {
+            self.failsafe_stops += 1;
+            tracing::warn!("fail-safe stop ({why:?}): {detail}");
+            if let Some(log) = &self.logger {
+                let message = format!("runtime: zero set-point sent ({why:?}): {detail}");
+                log.log(monotonic_ns(), LogLevel::Warning, message);
+            }
+        }
+        self.send(base, BodyVelocity::ZERO);
+    }
+
+    fn on_msg<B: MotorBase>(&mut self, base: &mut B, msg: Msg) -> Option<Result<EndReason, RuntimeError>> {
+        match msg {
+            Msg::Setpoint { seq, t_ns, setpoint } => {
+                let expires = instant_at(t_ns.saturating_add(self.stall.as_nanos() as u64));
+                if expires <= Instant::now() {
+                    let detail = format!("the set-point of frame {seq} is older than the stall time");
+                    self.failsafe(base, Failsafe::Expired, &detail);
+                    return None;
+                }
+                self.command = Some(Command { setpoint, expires });
+                if self.send(base, setpoint) {
+                    let latency = monotonic_ns().saturating_sub(t_ns);
+                    self.latency.record(latency);
+                    tracing::debug!(
+                        seq,
+                        v = setpoint.v,
+                        omega = setpoint.omega,
+                        latency_us = latency / 1000,
+                        "set-point"
+                    );
+                }
+            }
+            Msg::StepFailed { seq, error } => {
+                self.failsafe(base, Failsafe::StepFailed, &format!("step failed on frame {seq}: {error}"));
+            }
+            Msg::Stalled => self.failsafe(base, Failsafe::Expired, "no frame within the stall time"),
+            Msg::CameraDown(error) => self.failsafe(base, Failsafe::CameraDown, &error),
+            Msg::CameraUp => tracing::info!("camera delivers frames again"),
+            Msg::StepPanicked(message) => return Some(Err(RuntimeError::StepPanicked(message))),
+            Msg::Ended(Closed::EndOfStream(message)) => {
+                tracing::info!("{message}: stopping the robot, ending the run");
+                return Some(Ok(EndReason::EndOfStream));
+            }
+            Msg::Ended(Closed::Fatal(message)) => return Some(Err(RuntimeError::Camera(message))),
+            Msg::Ended(Closed::Shutdown) => return Some(Ok(EndReason::Shutdown)),
+        }
+        None
+    }
+
+    fn on_event<E: Error>(&mut self, ev: Result<Option<BaseEvent>, E>) {
+        match ev {
+            Ok(None) => {}
+            Ok(Some(ev)) => {
+                if self.events_failing {
+                    self.events_failing = false;
+                    tracing::info!("base events arrive again");
+                }
+                match ev {
+                    BaseEvent::Odometry(o) => {
+                        self.odometry_events += 1;
+                        self.shared.odometry.lock().unwrap_or_else(|e| e.into_inner()).push(o);
+                        if let Some(log) = &self.logger {
+                            log.odometry(&o);
+                        }
+                    }
+                    BaseEvent::Status(s) => {
+                        self.status_events += 1;
+                        let changed =
+                            |f: fn(&hal::BaseStatus) -> bool| f(&s) && !self.last_status.as_ref().is_some_and(f);
+                        for (name, f) in [
+                            ("bumper pressed", (|s: &hal::BaseStatus| s.bumper) as fn(&hal::BaseStatus) -> bool),
+                            ("emergency stop", |s| s.estop),
+                            ("the base's watchdog stopped it", |s| s.stopped_by_watchdog),
+                            ("motor fault", |s| s.motor_fault),
+                            ("cliff", |s| s.cliff),
+                            ("wheel drop", |s| s.wheel_drop),
+                        ] {
+                            if changed(f) {
+                                tracing::warn!("base status: {name}");
+                            }
+                        }
+                        self.last_status = Some(s);
+                        if let Some(log) = &self.logger {
+                            log.base_status(&s);
+                        }
+                    }
+                }
+            }
+            Err(e) => {
+                if !self.events_failing {
+                    self.events_failing = true;
+                    match e.kind() {
+                        ErrorKind::Disconnected => tracing::warn!("base link lost: {e}; the driver reconnects"),
+                        _ => tracing::warn!("base: {e}"),
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The next base event; after an error, waits 100 ms first so a driver that keeps failing
+/// (its task ended) cannot spin the loop.
+async fn next_event<B: MotorBase>(base: &mut B, pause: bool) -> Result<Option<BaseEvent>, B::Error> {
+    if pause {
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    base.next_event(Duration::from_millis(200)).await
+}
+
+fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
+    p.downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| p.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic payload".into())
+}
+
+/// The step thread: takes the newest frame, steps it, reports to the control task.
+///
+/// With a logger, every frame's image, every step and every `fail_safe` call are recorded
+/// through [`crate::logging::record`], so `flownav replay` can re-run the log bit for bit.
+fn step_loop(
+    mut pipeline: Pipeline,
+    shared: &Shared,
+    tx: &mpsc::UnboundedSender<Msg>,
+    stall: Duration,
+    logger: Option<&LogHandle>,
+) {
+    let mut stalled = false;
+    loop {
+        let frame = match shared.slot.take(stall) {
+            Taken::Frame(f) => f,
+            Taken::TimedOut => {
+                if !stalled {
+                    stalled = true;
+                    pipeline.fail_safe();
+                    if let Some(h) = logger {
+                        record_failsafe(h, monotonic_ns(), "no frame within the stall time");
+                    }
+                    let _ = tx.send(Msg::Stalled);
+                }
+                continue;
+            }
+            Taken::Closed(why) => {
+                let _ = tx.send(Msg::Ended(why));
+                return;
+            }
+        };
+        stalled = false;
+        let velocity = shared
+            .odometry
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .for_frame(frame.t_ns)
+            .map_or(BodyVelocity::ZERO, |o| o.velocity);
+        let (seq, t_ns) = (frame.seq, frame.t_ns);
+        if let Some(h) = logger {
+            record_frame(h, &frame, RecordImage::Mono8(&frame.image));
+        }
+        let (wall0, cpu0) = (monotonic_ns(), thread_cpu_ns());
+        let outcome = catch_unwind(AssertUnwindSafe(|| pipeline.step(frame, velocity)));
+        {
+            let (wall, cpu) = (monotonic_ns().saturating_sub(wall0), thread_cpu_ns().saturating_sub(cpu0));
+            let mut times = shared.step_times.lock().unwrap_or_else(|e| e.into_inner());
+            times.0.record(wall);
+            times.1.record(cpu);
+        }
+        shared.counters.processed.fetch_add(1, Ordering::Relaxed);
+        let msg = match outcome {
+            Ok(Ok(Some(out))) => {
+                if let Some(h) = logger {
+                    record_step(h, velocity, &out, &pipeline);
+                }
+                Msg::Setpoint { seq, t_ns, setpoint: out.setpoint() }
+            }
+            Ok(Ok(None)) => continue,
+            Ok(Err(e)) => {
+                shared.counters.step_failures.fetch_add(1, Ordering::Relaxed);
+                pipeline.fail_safe();
+                let error = e.to_string();
+                if let Some(h) = logger {
+                    record_failsafe(h, t_ns, &format!("step failed on frame {seq}: {error}"));
+                }
+                Msg::StepFailed { seq, error }
+            }
+            Err(p) => {
+                let _ = tx.send(Msg::StepPanicked(panic_message(p.as_ref())));
+                return;
+            }
+        };
+        if tx.send(msg).is_err() {
+            return;
+        }
+    }
+}
+
+/// The camera thread: captures in a loop, hands frames to the slot, reports trouble.
+fn camera_loop<C: Camera>(mut camera: C, shared: &Shared, tx: &mpsc::UnboundedSender<Msg>, opts: &RuntimeOptions) {
+    let c = &shared.counters;
+    let mut backoff = opts.camera_backoff_initial;
+    let mut down = false;
+    while !shared.stop.load(Ordering::Relaxed) {
+        match catch_unwind(AssertUnwindSafe(|| camera.capture())) {
+            Ok(Ok(frame)) => {
+                c.captured.fetch_add(1, Ordering::Relaxed);
+                if down {
+                    down = false;
+                    backoff = opts.camera_backoff_initial;
+                    let _ = tx.send(Msg::CameraUp);
+                }
+                shared.slot.put(frame);
+            }
+            Ok(Err(e)) => match e.kind() {
+                ErrorKind::Timeout => {
+                    c.timeouts.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!("camera: {e}");
+                }
+                ErrorKind::BadData => {
+                    if c.bad.fetch_add(1, Ordering::Relaxed) < 10 {
+                        tracing::warn!("camera: {e}");
+                    }
+                }
+                ErrorKind::Disconnected => {
+                    if !down {
+                        down = true;
+                        c.camera_disconnects.fetch_add(1, Ordering::Relaxed);
+                        tracing::warn!("camera: {e}; retrying with back-off");
+                        let _ = tx.send(Msg::CameraDown(e.to_string()));
+                    }
+                    sleep_unless_stopped(backoff, &shared.stop);
+                    backoff = (backoff * 2).min(opts.camera_backoff_max);
+                }
+                ErrorKind::EndOfStream => {
+                    shared.slot.close(Closed::EndOfStream(e.to_string()));
+                    return;
+                }
+                ErrorKind::Unsupported | ErrorKind::Other => {
+                    shared.slot.close(Closed::Fatal(format!("camera: {e}")));
+                    return;
+                }
+            },
+            Err(p) => {
+                shared.slot.close(Closed::Fatal(format!("the camera panicked: {}", panic_message(p.as_ref()))));
+                return;
+            }
+        }
+    }
+}
+
+/// CPU time of the calling thread, ns (0 if the clock cannot be read).
+fn thread_cpu_ns() -> u64 {
+    match nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID) {
+        Ok(ts) => ts.tv_sec() as u64 * 1_000_000_000 + ts.tv_nsec() as u64,
+        Err(_) => 0,
+    }
+}
+
+fn sleep_unless_stopped(d: Duration, stop: &AtomicBool) {
+    let end = std::time::Instant::now() + d;
+    while !stop.load(Ordering::Relaxed) {
+        let now = std::time::Instant::now();
+        if now >= end {
+            return;
+        }
+        std::thread::sleep((end - now).min(Duration::from_millis(20)));
+    }
+}

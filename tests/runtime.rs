@@ -1,0 +1,308 @@
+//! `flownav::runtime::run` over real pseudo-terminals: the FNP/1 driver talks to the simulated
+//! base (`mocks::sim_base`, real-time clock), frames come from an in-test camera or a frame
+//! folder, and every assertion is about what the base received.
+//!
+//! The base side records each chunk of bytes it received: its own simulated time, the host
+//! monotonic time of arrival (the clock frames are stamped with) and the command in force after
+//! it. Bounds on times are generous multiples of the rule they check.
+
+use flownav::config::Config;
+use flownav::runtime::{EndReason, RunReport, RuntimeError, RuntimeOptions, run};
+use flownav::sources::{CameraSpec, open_camera};
+use flownav::step::Pipeline;
+use hal::camera::monotonic_ns;
+use hal::fnp_driver::{FnpBase, FnpConfig};
+use hal::{BodyVelocity, Calibration, Camera, Error, ErrorKind, Frame, LumaImage};
+use mocks::kinematics::{DiffDrive, Pose};
+use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimDevice, SimServer};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::time::timeout;
+
+const GUARD: Duration = Duration::from_secs(20);
+const WIDTH: usize = 320;
+const HEIGHT: usize = 240;
+
+/// What the simulated base saw in one chunk of received bytes.
+#[derive(Clone, Copy, Debug)]
+struct Received {
+    /// The base's simulated time, s.
+    sim_s: f64,
+    /// Host monotonic time of arrival, ns.
+    host_ns: u64,
+    setpoints: u64,
+    stops: u64,
+    /// The command in force afterwards.
+    commanded: BodyVelocity,
+}
+
+/// The simulated FNP/1 base, recording what it receives.
+struct Recording {
+    base: SimBase,
+    received: Vec<Received>,
+}
+
+impl SimDevice for Recording {
+    fn receive(&mut self, bytes: &[u8], out: &mut Vec<u8>) {
+        let before = self.base.counters();
+        self.base.receive(bytes, out);
+        let after = self.base.counters();
+        let (setpoints, stops) = (after.setpoints - before.setpoints, after.stops - before.stops);
+        if setpoints + stops > 0 {
+            self.received.push(Received {
+                sim_s: self.base.time_s(),
+                host_ns: monotonic_ns(),
+                setpoints,
+                stops,
+                commanded: self.base.commanded(),
+            });
+        }
+    }
+    fn advance(&mut self, dt: f64, out: &mut Vec<u8>) {
+        self.base.advance(dt, out)
+    }
+    fn pose(&self) -> Pose {
+        self.base.pose()
+    }
+    fn drive(&mut self) -> &mut DiffDrive {
+        self.base.drive()
+    }
+}
+
+type Server = SimServer<Recording>;
+
+fn serve(link: Option<std::path::PathBuf>) -> Server {
+    let device = Recording { base: SimBase::new(SimBaseConfig::default()), received: Vec::new() };
+    SimServer::start(device, ServeOptions { link, ..Default::default() }).unwrap()
+}
+
+async fn connect(port: &std::path::Path) -> FnpBase {
+    timeout(GUARD, FnpBase::connect(FnpConfig::new(port.to_string_lossy()))).await.unwrap().unwrap()
+}
+
+fn received(server: &Server) -> Vec<Received> {
+    server.with_device(|d| d.received.clone())
+}
+
+fn pipeline() -> Pipeline {
+    let calib = Calibration::load(concat!(env!("CARGO_MANIFEST_DIR"), "/calib/c310.toml")).unwrap();
+    let mut cfg = Config::default();
+    cfg.flow.backend = flownav::flow::Backend::Cpu;
+    Pipeline::new(&cfg, calib, None).unwrap()
+}
+
+/// A textured scene seen by a camera panning `shift` pixels per frame: real flow everywhere.
+fn scene(width: usize, height: usize, shift: f64) -> LumaImage {
+    LumaImage::from_fn(width, height, |x, y| {
+        let (x, y) = (x as f64 + shift, y as f64);
+        let v = 128.0
+            + 45.0 * (0.31 * x + 0.17 * y).sin()
+            + 35.0 * (0.11 * x - 0.23 * y).sin()
+            + 25.0 * (0.53 * x * 0.7 + 0.41 * y).cos();
+        v.clamp(0.0, 255.0) as u8
+    })
+}
+
+/// What the in-test camera does after its frames.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Then {
+    /// Report the end of the stream.
+    End,
+    /// Stop delivering: stall timeouts forever.
+    Stall,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("test camera: {0:?}")]
+struct CamError(ErrorKind);
+impl Error for CamError {
+    fn kind(&self) -> ErrorKind {
+        self.0
+    }
+}
+
+/// (capture stamp ns, width) of each delivered frame.
+type Delivered = Arc<Mutex<Vec<(u64, usize)>>>;
+
+/// Frames at `fps`, stamped on the monotonic clock when delivered; frame `odd_size_at` (if
+/// any) is smaller than the rest. Records each delivered frame's stamp and size.
+struct TestCamera {
+    fps: f64,
+    frames: u64,
+    then: Then,
+    odd_size_at: Option<u64>,
+    seq: u64,
+    next_ns: Option<u64>,
+    delivered: Delivered,
+}
+
+impl TestCamera {
+    fn new(fps: f64, frames: u64, then: Then) -> (Self, Delivered) {
+        let delivered = Arc::new(Mutex::new(Vec::new()));
+        let cam = Self { fps, frames, then, odd_size_at: None, seq: 0, next_ns: None, delivered: delivered.clone() };
+        (cam, delivered)
+    }
+}
+
+impl Camera for TestCamera {
+    type Error = CamError;
+
+    fn capture(&mut self) -> Result<Frame, CamError> {
+        if self.seq >= self.frames {
+            return match self.then {
+                Then::End => Err(CamError(ErrorKind::EndOfStream)),
+                Then::Stall => {
+                    std::thread::sleep(Duration::from_millis(50));
+                    Err(CamError(ErrorKind::Timeout))
+                }
+            };
+        }
+        let due = *self.next_ns.get_or_insert_with(monotonic_ns);
+        let now = monotonic_ns();
+        if due > now {
+            std::thread::sleep(Duration::from_nanos(due - now));
+        }
+        self.next_ns = Some(due + (1e9 / self.fps) as u64);
+        let (w, h) = if self.odd_size_at == Some(self.seq) { (WIDTH / 2, HEIGHT / 2) } else { (WIDTH, HEIGHT) };
+        let image = scene(w, h, self.seq as f64 * 2.0);
+        let frame = Frame { seq: self.seq, t_ns: monotonic_ns(), image };
+        self.delivered.lock().unwrap().push((frame.t_ns, w));
+        self.seq += 1;
+        Ok(frame)
+    }
+}
+
+fn opts() -> RuntimeOptions {
+    RuntimeOptions::default()
+}
+
+async fn run_until<C: Camera + 'static>(
+    camera: C,
+    base: FnpBase,
+    shutdown_after: Duration,
+) -> Result<RunReport, RuntimeError> {
+    timeout(GUARD, run(camera, base, pipeline(), None, tokio::time::sleep(shutdown_after), opts())).await.unwrap()
+}
+
+fn is_moving(r: &Received) -> bool {
+    r.commanded != BodyVelocity::ZERO
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn setpoints_reach_the_base_at_20_hz_or_more_by_its_own_clock() {
+    let server = serve(None);
+    let base = connect(&server.pty_path()).await;
+    // 10 fps: between frames only the runtime's refresh keeps the rate up.
+    let (camera, _) = TestCamera::new(10.0, 1000, Then::Stall);
+    let task = tokio::spawn(run_until(camera, base, Duration::from_millis(2000)));
+    tokio::time::sleep(Duration::from_millis(400)).await;
+    let (n0, t0) = server.with_device(|d| (d.base.counters().setpoints, d.base.time_s()));
+    tokio::time::sleep(Duration::from_millis(1200)).await;
+    let (n1, t1) = server.with_device(|d| (d.base.counters().setpoints, d.base.time_s()));
+    let rate = (n1 - n0) as f64 / (t1 - t0);
+    let report = task.await.unwrap().unwrap();
+    assert!(rate >= 20.0, "{rate:.1} set-points per simulated second; report {report:?}");
+    assert!(rate <= 60.0, "{rate:.1} set-points/s: refreshes must not pile up on top of new set-points");
+    assert!(report.latency.count > 5, "{report:?}");
+    assert!(received(&server).iter().any(is_moving), "the pipeline drove the robot");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_camera_stops_the_base_within_200_ms_of_its_last_frame() {
+    let server = serve(None);
+    let base = connect(&server.pty_path()).await;
+    let (camera, delivered) = TestCamera::new(30.0, 20, Then::Stall);
+    let report = run_until(camera, base, Duration::from_millis(1500)).await.unwrap();
+    let last_frame_ns = delivered.lock().unwrap().last().unwrap().0;
+    let rx = received(&server);
+    let after: Vec<&Received> = rx.iter().filter(|r| r.host_ns > last_frame_ns).collect();
+    assert!(after.first().is_some_and(|r| is_moving(r)), "the last frame's set-point drove the robot: {after:?}");
+    let first_zero = after.iter().find(|r| !is_moving(r)).expect("a zero command after the stall");
+    let delay_ms = (first_zero.host_ns - last_frame_ns) as f64 * 1e-6;
+    eprintln!("stall: zero {delay_ms:.1} ms after the last frame; {report:?}");
+    // The rule: 150 ms stall time → zero at once; bound 200 ms + one set-point period (40 ms).
+    assert!(delay_ms <= 240.0, "zero {delay_ms:.0} ms after the last frame");
+    let zero_sim_s = first_zero.sim_s;
+    assert!(
+        rx.iter().filter(|r| r.sim_s > zero_sim_s).all(|r| !is_moving(r)),
+        "the base stays stopped while the camera stalls"
+    );
+    assert!(report.failsafe_stops >= 1, "{report:?}");
+    assert_eq!(report.ended, EndReason::Shutdown);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_sends_stop_last() {
+    let server = serve(None);
+    let base = connect(&server.pty_path()).await;
+    let (camera, _) = TestCamera::new(30.0, 10_000, Then::End);
+    let report = run_until(camera, base, Duration::from_millis(1000)).await.unwrap();
+    assert_eq!(report.ended, EndReason::Shutdown);
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let rx = received(&server);
+    assert!(rx.iter().any(is_moving), "it drove before the shutdown");
+    let last = rx.last().unwrap();
+    assert!(last.stops > 0 && last.commanded == BodyVelocity::ZERO, "last received: {last:?}");
+    assert_eq!(server.with_device(|d| d.base.commanded()), BodyVelocity::ZERO);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failed_step_sends_a_zero_setpoint_and_the_run_goes_on() {
+    let server = serve(None);
+    let base = connect(&server.pty_path()).await;
+    let (mut camera, delivered) = TestCamera::new(30.0, 40, Then::End);
+    camera.odd_size_at = Some(20);
+    let report = run_until(camera, base, GUARD).await.unwrap();
+    assert_eq!(report.ended, EndReason::EndOfStream);
+    assert_eq!(report.step_failures, 1, "only the odd frame fails: {report:?}");
+    let odd_ns = delivered.lock().unwrap()[20].0;
+    let rx = received(&server);
+    assert!(rx.iter().any(|r| r.host_ns < odd_ns && is_moving(r)), "moving before the bad frame");
+    let zero = rx.iter().find(|r| r.host_ns > odd_ns && !is_moving(r)).expect("a zero after the bad frame");
+    assert!((zero.host_ns - odd_ns) as f64 * 1e-6 <= 200.0);
+    assert!(rx.iter().any(|r| r.host_ns > zero.host_ns && is_moving(r)), "set-points resume with the next good frames");
+    assert!(report.failsafe_stops >= 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_frame_folder_plays_to_its_end_then_the_base_is_stopped() {
+    let dir = tempfile::tempdir().unwrap();
+    for i in 0..12 {
+        flownav::frames::save_png(&scene(WIDTH, HEIGHT, i as f64 * 2.0), dir.path().join(format!("{i:04}.png")))
+            .unwrap();
+    }
+    let spec: CameraSpec = format!("frames:{}", dir.path().display()).parse().unwrap();
+    let camera = open_camera(&spec, &Config::default().camera).unwrap();
+    let server = serve(None);
+    let base = connect(&server.pty_path()).await;
+    let report = run_until(camera, base, GUARD).await.unwrap();
+    assert_eq!(report.ended, EndReason::EndOfStream);
+    assert_eq!(report.frames_captured, 12);
+    assert_eq!(report.frames_processed + report.frames_dropped, 12, "{report:?}");
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let last = *received(&server).last().unwrap();
+    assert!(last.stops > 0 && last.commanded == BodyVelocity::ZERO, "last received: {last:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn setpoints_resume_after_the_base_link_comes_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ttyBASE");
+    let server = serve(Some(link.clone()));
+    let base = connect(&link).await;
+    let (camera, _) = TestCamera::new(30.0, 10_000, Then::End);
+    let task = tokio::spawn(run_until(camera, base, Duration::from_millis(2500)));
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    server.disconnect(Duration::from_millis(300));
+    let reconnected_at = loop {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        if server.pty_generation() > 0 {
+            break monotonic_ns();
+        }
+    };
+    let report = task.await.unwrap().unwrap();
+    let rx = received(&server);
+    let resumed = rx.iter().filter(|r| r.host_ns > reconnected_at && r.setpoints > 0 && is_moving(r)).count();
+    assert!(resumed >= 10, "{resumed} moving set-points after the reconnect; report {report:?}");
+    assert!(report.base_disconnects >= 1 && report.link.reconnects >= 1, "{report:?}");
+}
