@@ -7,6 +7,8 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
+pub mod analyze;
+pub mod bench_offis;
 pub mod flow;
 pub mod render;
 pub mod devices;
@@ -66,6 +68,10 @@ pub enum Command {
     Log(log::Args),
     /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
     SimBase(sim_base::Args),
+    /// Run OFFIS over a frame folder: one JSON line per frame pair (perception and set-point).
+    Analyze(analyze::Args),
+    /// OFFIS accuracy on a labelled simulated scene set: confusion matrix, obstacle errors.
+    BenchOffis(bench_offis::Args),
 }
 
 /// Runs one parsed command line.
@@ -76,6 +82,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Devices(args) => devices::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
         Command::SimBase(args) => sim_base::run(args, &cli.common),
+        Command::Analyze(args) => analyze::run(args, &cli.common),
+        Command::BenchOffis(args) => bench_offis::run(args, &cli.common),
     }
 }
 

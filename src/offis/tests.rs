@@ -46,7 +46,7 @@ fn corridor_with_box() -> Scene {
 
 fn run(scene: &Scene, c: &Calibration, rows: usize, cols: usize, vel: BodyVelocity) -> (Perception, Attributes) {
     let pair = scene.flow(c, rows, cols, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let p = offis.step(&pair.field, vel, DT, c).unwrap();
     (p, offis.attributes().clone())
 }
@@ -168,7 +168,7 @@ fn obstacle_zoom_distance_and_bearing() {
         Scene { rects: vec![Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.6, [-0.6, -0.2], [-1.0, 0.8])] };
     let vel = BodyVelocity::new(0.5, 0.1);
     let pair = scene.flow(&c, 16, 16, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let p = offis.step(&pair.field, vel, DT, &c).unwrap();
     let [r, col] = p.obstacle.cell.unwrap();
     assert!(p.obstacle.present);
@@ -218,7 +218,7 @@ fn calibration_is_scaled_to_the_flow_size() {
     };
     let vel = BodyVelocity::new(0.5, 0.0);
     let pair = wall().flow(&small, 16, 16, vel, DT);
-    let p = Offis::new(OffisParams::default()).step(&pair.field, vel, DT, &c).unwrap();
+    let p = Offis::new(OffisParams::default()).unwrap().step(&pair.field, vel, DT, &c).unwrap();
     assert!((p.tpo.distance_m.unwrap() - 1.95).abs() < 1e-3);
 }
 
@@ -231,7 +231,7 @@ fn invalid_vectors_and_bad_inputs() {
         f.validity = crate::flow::Validity::Textureless;
         f.u = 1e6;
     }
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let p = offis.step(&pair.field, vel, DT, &c).unwrap();
     assert_eq!(offis.attributes().valid, 256 - 86);
     assert_eq!(p.rough, [[1; 4]; 4], "invalid vectors do not enter the averages");
@@ -256,7 +256,7 @@ fn the_step_is_deterministic_and_reuses_its_buffers() {
     let vel = BodyVelocity::new(0.5, 0.1);
     let a = corridor_with_box().flow(&c, 16, 16, vel, DT);
     let b = door().flow(&c, 24, 24, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let first = offis.step(&a.field, vel, DT, &c).unwrap();
     offis.step(&b.field, vel, DT, &c).unwrap();
     assert_eq!(offis.step(&a.field, vel, DT, &c).unwrap(), first);
@@ -266,7 +266,7 @@ fn features(scene: &Scene) -> features::Features {
     let c = Calibration::nominal_c310();
     let vel = BodyVelocity::new(0.5, 0.0);
     let pair = scene.flow(&c, 16, 16, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     offis.step(&pair.field, vel, DT, &c).unwrap();
     offis.attributes().features
 }
@@ -309,7 +309,7 @@ fn the_floor_is_never_the_obstacle() {
     };
     let vel = BodyVelocity::new(0.5, 0.0);
     let pair = scene.flow(&c, 16, 16, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let p = offis.step(&pair.field, vel, DT, &c).unwrap();
     let [r, col] = p.obstacle.cell.unwrap();
     let t = pair.truth[(2 * r) * 16 + 2 * col].unwrap();
