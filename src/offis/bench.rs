@@ -160,6 +160,8 @@ pub struct Sample {
     /// Reported obstacle (distance m, bearing rad), if present.
     pub obstacle: Option<(Option<f64>, Option<f64>)>,
     pub features: super::features::Features,
+    /// The envelope profile (forward, left per bin, m), for diagnosis.
+    pub profile: Vec<Option<[f64; 2]>>,
 }
 
 /// The benchmark's result.
@@ -250,6 +252,7 @@ pub fn run(
             truth_obstacle: truth.obstacle.distance_m.zip(truth.obstacle.bearing_rad).filter(|_| truth.obstacle.present),
             obstacle: p.obstacle.present.then_some((p.obstacle.distance_m, p.obstacle.bearing_rad)),
             features: pipeline.offis().attributes().features,
+            profile: pipeline.offis().attributes().bins.iter().map(|b| b.point).collect(),
         };
         progress(i, &sample);
         samples.push(sample);

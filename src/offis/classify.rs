@@ -38,7 +38,7 @@ pub enum ClassifyError {
 }
 
 /// The feature names the rule bases may use as inputs.
-pub const FEATURES: [&str; 8] = [
+pub const FEATURES: [&str; 9] = [
     "near_frac",
     "planes",
     "pair_angle_deg",
@@ -47,6 +47,7 @@ pub const FEATURES: [&str; 8] = [
     "front_m",
     "open_ahead_m",
     "gap_m",
+    "meet_m",
 ];
 
 fn feature(f: &Features, k: usize) -> f64 {
@@ -58,7 +59,8 @@ fn feature(f: &Features, k: usize) -> f64 {
         4 => f.opposite,
         5 => f.front_m,
         6 => f.open_ahead_m,
-        _ => f.gap_m,
+        7 => f.gap_m,
+        _ => f.meet_m,
     }
 }
 

@@ -151,10 +151,40 @@ fn inliers_of(bins: &[Bin], free: u64, line: &Line) -> u64 {
     m
 }
 
-/// The best-supported line among the points of `free` (see the module doc), if it is a plane.
+/// Largest spacing along a plane between neighbouring inliers, m: a wider hole splits the
+/// inliers into separate surfaces (a door opening is at most ~1.4 m, plus a bin either side).
+pub const MAX_HOLE_M: f64 = 1.8;
+
+/// Keeps the largest run of `line`'s inliers whose neighbours along the line are at most
+/// [`MAX_HOLE_M`] apart (two collinear but separate objects are not one plane).
+fn contiguous(bins: &[Bin], line: &Line) -> u64 {
+    let mut pts: Vec<(f64, usize)> = (0..bins.len())
+        .filter(|&b| line.inliers >> b & 1 == 1)
+        .filter_map(|b| bins[b].point.map(|p| ((p[0] - line.centre[0]) * line.dir[0] + (p[1] - line.centre[1]) * line.dir[1], b)))
+        .collect();
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut best, mut run, mut best_n, mut n) = (0u64, 0u64, 0, 0);
+    for (k, &(s, b)) in pts.iter().enumerate() {
+        if k > 0 && s - pts[k - 1].0 > MAX_HOLE_M {
+            run = 0;
+            n = 0;
+        }
+        run |= 1 << b;
+        n += 1;
+        if n > best_n {
+            best_n = n;
+            best = run;
+        }
+    }
+    best
+}
+
+/// The best line among the points of `free` (see the module doc), if it is a plane. Lines are
+/// scored MSAC-style, `Σ min(d², T²)` over the free points with `T` the inlier tolerance, so a
+/// line through the middle of a corner (many points, each far off) loses to one of its walls.
 fn best_line(bins: &[Bin], free: u64) -> Option<Line> {
     let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
-    let mut best: Option<(usize, f64, u64)> = None;
+    let mut best: Option<(f64, u64)> = None;
     for (k, &i) in idx.iter().enumerate() {
         for &j in &idx[k + 1..] {
             let (Some(a), Some(b)) = (bins[i].point, bins[j].point) else { continue };
@@ -163,24 +193,69 @@ fn best_line(bins: &[Bin], free: u64) -> Option<Line> {
                 continue;
             }
             let line = Line { centre: a, dir: [(b[0] - a[0]) / len, (b[1] - a[1]) / len], ..Line::default() };
-            let m = inliers_of(bins, free, &line);
-            let n = m.count_ones() as usize;
-            let cost: f64 = (0..bins.len())
-                .filter(|&q| m >> q & 1 == 1)
-                .filter_map(|q| bins[q].point)
-                .map(|p| line.distance(p))
-                .sum();
-            if best.is_none_or(|(bn, bc, _)| n > bn || (n == bn && cost < bc)) {
-                best = Some((n, cost, m));
+            let mut cost = 0.0;
+            let mut m = 0u64;
+            for &q in &idx {
+                let p = bins[q].point.expect("free bins have points");
+                let (d, t) = (line.distance(p), tolerance(range(p)));
+                if d <= t {
+                    m |= 1 << q;
+                }
+                cost += d.min(t).powi(2) / (t * t);
+            }
+            if best.is_none_or(|(bc, _)| cost < bc) {
+                best = Some((cost, m));
             }
         }
     }
-    let (_, _, mask) = best?;
+    let (_, mask) = best?;
     let first = fit_mask(bins, mask)?;
-    // one refinement: the refit line's own inliers
-    let line = fit_mask(bins, inliers_of(bins, free, &first)).unwrap_or(first);
-    (line.count() >= MIN_PLANE_POINTS && line.extent[1] - line.extent[0] >= MIN_PLANE_M).then_some(line)
+    // one refinement: the refit line's own inliers, then the largest contiguous run of them
+    let mut line = fit_mask(bins, inliers_of(bins, free, &first)).unwrap_or(first);
+    line = fit_mask(bins, contiguous(bins, &line)).unwrap_or(line);
+    is_plane(&line).then_some(line)
 }
+
+fn is_plane(line: &Line) -> bool {
+    line.count() >= MIN_PLANE_POINTS && line.extent[1] - line.extent[0] >= MIN_PLANE_M
+}
+
+/// Sum of squared distances of `line`'s inliers from it.
+fn sse(bins: &[Bin], line: &Line) -> f64 {
+    (0..bins.len())
+        .filter(|&b| line.inliers >> b & 1 == 1)
+        .filter_map(|b| bins[b].point)
+        .map(|p| line.distance(p).powi(2))
+        .sum()
+}
+
+/// A plane whose inliers are better explained by two planes meeting at an angle (a corner
+/// seen as one bent line within the tolerance): the best split of its inliers in bin order
+/// into two planes, if that cuts the squared residual to at most [`SPLIT_GAIN`] of the single
+/// line's and the two meet at [`SPLIT_MIN_DEG`] or more.
+fn split(bins: &[Bin], line: &Line) -> Option<[Line; 2]> {
+    let idx: Vec<usize> = (0..bins.len()).filter(|&b| line.inliers >> b & 1 == 1).collect();
+    let whole = sse(bins, line);
+    let mut best: Option<(f64, [Line; 2])> = None;
+    for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
+        let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
+        let right = line.inliers & !left;
+        let (Some(a), Some(b)) = (fit_mask(bins, left), fit_mask(bins, right)) else { continue };
+        if !(is_plane(&a) && is_plane(&b)) {
+            continue;
+        }
+        let cost = sse(bins, &a) + sse(bins, &b);
+        if best.as_ref().is_none_or(|(c, _)| cost < *c) {
+            best = Some((cost, [a, b]));
+        }
+    }
+    let (cost, [a, b]) = best?;
+    (cost <= SPLIT_GAIN * whole && angle_between(a.dir, b.dir) >= SPLIT_MIN_DEG).then_some([a, b])
+}
+
+/// See [`split`].
+pub const SPLIT_GAIN: f64 = 0.3;
+pub const SPLIT_MIN_DEG: f64 = 12.0;
 
 /// The TPO's planes: up to two lines on the floor plan.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
@@ -200,7 +275,13 @@ impl TpoModel {
         }
         let first = best_line(bins, free);
         let second = first.and_then(|l| best_line(bins, free & !l.inliers));
-        Self { lines: [first, second] }
+        match (first, second) {
+            (Some(l), None) => match split(bins, &l) {
+                Some([a, b]) => Self { lines: [Some(a), Some(b)] },
+                None => Self { lines: [Some(l), None] },
+            },
+            _ => Self { lines: [first, second] },
+        }
     }
 
     pub fn planes(&self) -> impl Iterator<Item = &Line> {
@@ -263,6 +344,11 @@ pub struct Features {
     /// Width of the widest gap in a plane that shows a surface clearly beyond the plane (or
     /// nothing), flanked by the plane's inliers on both sides, m: a door's opening.
     pub gap_m: f64,
+    /// How far the point where the two planes' lines cross lies outside the planes' seen
+    /// extents, m (the larger of the two; 0 when both reach it): ~0 at a corner, large for a
+    /// door's wall and the room's back wall seen through it. [`OPEN_AHEAD_MAX_M`] with fewer
+    /// than two planes or parallel ones.
+    pub meet_m: f64,
     /// Forward distance to where the two planes meet, m (`None` when they do not).
     pub vertex_m: Option<f64>,
 }
@@ -305,23 +391,25 @@ impl Features {
             .min_by(f64::total_cmp);
         let (gap_m, gap_bearings) = Self::widest_gap(bins, &planes);
         let heading_in_gap = gap_bearings.is_some_and(|[lo, hi]| lo <= 0.0 && 0.0 <= hi);
-        let centre_env = bins
-            .iter()
-            .filter(|b| b.bearing.abs() <= 0.06)
-            .filter_map(|b| b.point.map(range))
-            .min_by(f64::total_cmp);
+        // through a gap, the next plane behind it (if any)
         let open_ahead = if heading_in_gap {
-            centre_env
+            planes.iter().filter_map(|l| l.hit(0.0, 0.5)).filter(|&t| front.is_none_or(|f| t > f + 0.3)).min_by(f64::total_cmp)
         } else {
-            match (model.hit(0.0, 0.5), centre_env) {
-                (Some(a), Some(b)) => Some(a.min(b)),
-                (a, b) => a.or(b),
-            }
+            model.hit(0.0, 0.5)
         };
-        let vertex_m = match planes[..] {
-            [a, b] if pair_angle_deg >= 10.0 => intersect(a, b).map(|p| p[0]).filter(|&x| x > 0.0),
+        let vertex = match planes[..] {
+            [a, b] if pair_angle_deg >= 5.0 => intersect(a, b),
             _ => None,
         };
+        let outside = |l: &Line, p: [f64; 2]| {
+            let s = (p[0] - l.centre[0]) * l.dir[0] + (p[1] - l.centre[1]) * l.dir[1];
+            (l.extent[0] - s).max(s - l.extent[1]).max(0.0)
+        };
+        let meet_m = match (vertex, &planes[..]) {
+            (Some(v), [a, b]) => outside(a, v).max(outside(b, v)).min(OPEN_AHEAD_MAX_M),
+            _ => OPEN_AHEAD_MAX_M,
+        };
+        let vertex_m = vertex.map(|p| p[0]).filter(|&x| x > 0.0);
         let cap = |x: Option<f64>| x.unwrap_or(OPEN_AHEAD_MAX_M).clamp(0.0, OPEN_AHEAD_MAX_M);
         Self {
             near_frac: near as f64 / nb,
@@ -332,6 +420,7 @@ impl Features {
             front_m: cap(front),
             open_ahead_m: cap(open_ahead),
             gap_m,
+            meet_m,
             vertex_m,
         }
     }

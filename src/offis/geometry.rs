@@ -170,11 +170,19 @@ pub struct DepthParams {
     pub max_depth_m: f64,
     /// Located points lower than this above the floor (m) are floor, never an obstacle.
     pub floor_height_m: f64,
+    /// The envelope profile, the plane fit and the obstacle decision use only blocks whose
+    /// radial flow is at least this (pixels): with block-matching noise of ~0.1 px, depth is
+    /// then good to ~30 %; below it, far floor near the horizon can pass for a near wall.
+    pub reliable_radial_px: f64,
+    /// For the profile and the obstacle decision, blocks lower than `floor_rel · camera height`
+    /// above the floor count as floor too: a floor block whose depth is off by a fraction `e`
+    /// appears `e · camera height` above the floor, whatever its distance.
+    pub floor_rel: f64,
 }
 
 impl Default for DepthParams {
     fn default() -> Self {
-        Self { min_speed_m_s: 0.02, min_radius_frac: 0.02, min_radial_px: 0.05, max_depth_m: 30.0, floor_height_m: 0.1 }
+        Self { min_speed_m_s: 0.02, min_radius_frac: 0.02, min_radial_px: 0.05, max_depth_m: 30.0, floor_height_m: 0.1, reliable_radial_px: 0.3, floor_rel: 0.4 }
     }
 }
 
@@ -185,6 +193,8 @@ pub struct Located {
     pub forward: f64,
     pub left: f64,
     pub up: f64,
+    /// The radial (translational) flow it was located from, pixels per frame interval.
+    pub radial_px: f64,
 }
 
 impl Located {
@@ -229,5 +239,5 @@ pub fn locate(
     let ray = cam.ray(x + ut, y + vt);
     let in_b = mat_t_vec(&motion.rot, ray.map(|k| k * depth));
     let robot = mat_vec(&robot_from_optical(cam.pitch_rad), in_b);
-    Some(Located { forward: robot[0], left: robot[1], up: robot[2] })
+    Some(Located { forward: robot[0], left: robot[1], up: robot[2], radial_px: radial })
 }

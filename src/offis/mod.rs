@@ -81,7 +81,7 @@ impl OffisParams {
     pub fn check(&self) -> Result<(), (String, String)> {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
-        let checks: [(&str, bool, &str); 12] = [
+        let checks: [(&str, bool, &str); 14] = [
             ("outlier.k_median", pos(self.outlier.k_median), "must be a positive number (typ. 2..5)"),
             ("outlier.floor_px", nonneg(self.outlier.floor_px), "must be ≥ 0 pixels"),
             ("outlier.min_support", self.outlier.min_support <= 8, "must be in 0..=8 neighbours"),
@@ -102,6 +102,8 @@ impl OffisParams {
                 pos(self.depth.max_depth_m) && nonneg(self.depth.floor_height_m),
                 "must be a positive distance (and depth.floor_height_m ≥ 0)",
             ),
+            ("depth.reliable_radial_px", nonneg(self.depth.reliable_radial_px), "must be ≥ 0 pixels"),
+            ("depth.floor_rel", nonneg(self.depth.floor_rel) && self.depth.floor_rel < 1.0, "must be in [0, 1)"),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err((format!("offis.{field}"), problem.to_string())),
@@ -298,7 +300,12 @@ impl Offis {
         let mut bins = std::mem::take(&mut self.attributes.bins);
         bins.clear();
         let nb = grid.cols.min(features::MAX_BINS);
-        let eligible = |l: &Located| l.up + z_m >= floor_m && l.up + z_m <= features::TOP_M;
+        let reliable = depth_p.reliable_radial_px;
+        // the floor test, relative: a floor block whose depth is off by a fraction e appears
+        // e·z_m above the floor, so anything below floor_rel·z_m may still be floor
+        let floor_rel_m = floor_m.max(depth_p.floor_rel * z_m);
+        let eligible =
+            |l: &Located| l.up + z_m >= floor_rel_m && l.up + z_m <= features::TOP_M && l.radial_px >= reliable;
         if foe.is_some() {
             for b in 0..nb {
                 let (c0, c1) = (b * grid.cols / nb, (b + 1) * grid.cols / nb);
