@@ -29,10 +29,12 @@ pub const FIT_RANGE_M: f64 = 6.5;
 /// `open_ahead_m` / `front_m` when nothing is on the heading.
 pub const OPEN_AHEAD_MAX_M: f64 = 8.0;
 /// Most profile bins: finer grids are merged into this many bins (keeps the fit cheap).
-pub const MAX_BINS: usize = 32;
+pub const MAX_BINS: usize = 16;
 /// Blocks located higher than this above the floor are ignored by the profile and the obstacle
 /// decision (ceiling, a door's lintel).
 pub const TOP_M: f64 = 1.95;
+/// The profile uses blocks at least this fraction of the camera height above the floor.
+pub const PROFILE_MIN_REL: f64 = 0.75;
 /// A TPO plane's inliers span at least this along the line, m.
 pub const MIN_PLANE_M: f64 = 0.9;
 /// Fewest inliers of a TPO plane.
@@ -220,41 +222,42 @@ fn is_plane(line: &Line) -> bool {
     line.count() >= MIN_PLANE_POINTS && line.extent[1] - line.extent[0] >= MIN_PLANE_M
 }
 
-/// Sum of squared distances of `line`'s inliers from it.
-fn sse(bins: &[Bin], line: &Line) -> f64 {
+/// MSAC cost of explaining the points of `free` by `lines`: per point, the smallest squared
+/// distance to a line over the squared tolerance, at most 1 (an unexplained point costs 1).
+fn cost(bins: &[Bin], free: u64, lines: &[Option<Line>; 2]) -> f64 {
     (0..bins.len())
-        .filter(|&b| line.inliers >> b & 1 == 1)
+        .filter(|&b| free >> b & 1 == 1)
         .filter_map(|b| bins[b].point)
-        .map(|p| line.distance(p).powi(2))
+        .map(|p| {
+            let t = tolerance(range(p));
+            lines.iter().flatten().map(|l| (l.distance(p) / t).powi(2)).fold(1.0, f64::min)
+        })
         .sum()
 }
 
-/// A plane whose inliers are better explained by two planes meeting at an angle (a corner
-/// seen as one bent line within the tolerance): the best split of its inliers in bin order
-/// into two planes, if that cuts the squared residual to at most [`SPLIT_GAIN`] of the single
-/// line's and the two meet at [`SPLIT_MIN_DEG`] or more.
-fn split(bins: &[Bin], line: &Line) -> Option<[Line; 2]> {
-    let idx: Vec<usize> = (0..bins.len()).filter(|&b| line.inliers >> b & 1 == 1).collect();
-    let whole = sse(bins, line);
-    let mut best: Option<(f64, [Line; 2])> = None;
+/// A corner: the best split of the points in bin order into a left and a right plane that meet
+/// at [`SPLIT_MIN_DEG`] or more (each side fitted like the first plane), if it explains the
+/// points better than `current` by at least [`SPLIT_MARGIN`]. The sequential fit can miss a
+/// shallow corner, whose two walls stay within the tolerance of one line through its middle.
+fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
+    let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
+    let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
     for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
         let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
-        let right = line.inliers & !left;
-        let (Some(a), Some(b)) = (fit_mask(bins, left), fit_mask(bins, right)) else { continue };
-        if !(is_plane(&a) && is_plane(&b)) {
+        let (Some(a), Some(b)) = (best_line(bins, left), best_line(bins, free & !left)) else { continue };
+        if angle_between(a.dir, b.dir) < SPLIT_MIN_DEG {
             continue;
         }
-        let cost = sse(bins, &a) + sse(bins, &b);
-        if best.as_ref().is_none_or(|(c, _)| cost < *c) {
-            best = Some((cost, [a, b]));
+        let c = cost(bins, free, &[Some(a), Some(b)]);
+        if c < best.0 {
+            best = (c, Some([a, b]));
         }
     }
-    let (cost, [a, b]) = best?;
-    (cost <= SPLIT_GAIN * whole && angle_between(a.dir, b.dir) >= SPLIT_MIN_DEG).then_some([a, b])
+    best.1
 }
 
 /// See [`split`].
-pub const SPLIT_GAIN: f64 = 0.3;
+pub const SPLIT_MARGIN: f64 = 1.0;
 pub const SPLIT_MIN_DEG: f64 = 12.0;
 
 /// The TPO's planes: up to two lines on the floor plan.
@@ -275,12 +278,9 @@ impl TpoModel {
         }
         let first = best_line(bins, free);
         let second = first.and_then(|l| best_line(bins, free & !l.inliers));
-        match (first, second) {
-            (Some(l), None) => match split(bins, &l) {
-                Some([a, b]) => Self { lines: [Some(a), Some(b)] },
-                None => Self { lines: [Some(l), None] },
-            },
-            _ => Self { lines: [first, second] },
+        match split(bins, free, &[first, second]) {
+            Some([a, b]) => Self { lines: [Some(a), Some(b)] },
+            None => Self { lines: [first, second] },
         }
     }
 

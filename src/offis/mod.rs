@@ -304,8 +304,15 @@ impl Offis {
         // the floor test, relative: a floor block whose depth is off by a fraction e appears
         // e·z_m above the floor, so anything below floor_rel·z_m may still be floor
         let floor_rel_m = floor_m.max(depth_p.floor_rel * z_m);
-        let eligible =
-            |l: &Located| l.up + z_m >= floor_rel_m && l.up + z_m <= features::TOP_M && l.radial_px >= reliable;
+        let eligible = |l: &Located| {
+            l.up + z_m >= floor_rel_m
+                && l.up + z_m <= features::TOP_M
+                && l.radial_px >= reliable
+                && l.tangential_px <= 0.5 * l.radial_px
+        };
+        // the profile looks at the planes from about the camera's height up (walls reach the
+        // ceiling, the floor never gets there, even with a grossly wrong depth)
+        let profile_min_m = features::PROFILE_MIN_REL * z_m;
         if foe.is_some() {
             for b in 0..nb {
                 let (c0, c1) = (b * grid.cols / nb, (b + 1) * grid.cols / nb);
@@ -313,7 +320,9 @@ impl Offis {
                 self.picks.clear();
                 for r in 0..grid.rows {
                     for c in c0..c1 {
-                        if let Some(l) = self.located[r * grid.cols + c].filter(|l| eligible(l)) {
+                        if let Some(l) =
+                            self.located[r * grid.cols + c].filter(|l| eligible(l) && l.up + z_m >= profile_min_m)
+                        {
                             self.picks.push((l.range(), [l.forward, l.left]));
                         }
                     }
