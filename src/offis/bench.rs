@@ -162,6 +162,8 @@ pub struct Sample {
     pub features: super::features::Features,
     /// The envelope profile (forward, left per bin, m), for diagnosis.
     pub profile: Vec<Option<[f64; 2]>>,
+    /// Blocks found nearer than the TPO, and in the reported obstacle's cluster.
+    pub obstacle_blocks: [usize; 2],
 }
 
 /// The benchmark's result.
@@ -253,6 +255,7 @@ pub fn run(
             obstacle: p.obstacle.present.then_some((p.obstacle.distance_m, p.obstacle.bearing_rad)),
             features: pipeline.offis().attributes().features,
             profile: pipeline.offis().attributes().bins.iter().map(|b| b.point).collect(),
+            obstacle_blocks: [pipeline.offis().attributes().obstacle_blocks, pipeline.offis().attributes().obstacle_cluster],
         };
         progress(i, &sample);
         samples.push(sample);

@@ -304,12 +304,15 @@ impl Offis {
         // the floor test, relative: a floor block whose depth is off by a fraction e appears
         // e·z_m above the floor, so anything below floor_rel·z_m may still be floor
         let floor_rel_m = floor_m.max(depth_p.floor_rel * z_m);
-        let eligible = |l: &Located| {
+        // the profile takes blocks whose flow is clearly radial; the obstacle decision tolerates more tangential flow,
+        // as blocks on an obstacle's outline mix its flow with the background's
+        let usable = |l: &Located, across: f64| {
             l.up + z_m >= floor_rel_m
                 && l.up + z_m <= features::TOP_M
                 && l.radial_px >= reliable
-                && l.tangential_px <= 0.5 * l.radial_px
+                && l.tangential_px <= across * l.radial_px
         };
+        let eligible = |l: &Located| usable(l, 0.5);
         // the profile looks at the planes from about the camera's height up (walls reach the
         // ceiling, the floor never gets there, even with a grossly wrong depth)
         let profile_min_m = features::PROFILE_MIN_REL * z_m;
@@ -353,7 +356,7 @@ impl Offis {
                 for r in 0..grid.rows {
                     for c in c0..c1 {
                         let i = r * grid.cols + c;
-                        if let Some(l) = self.located[i].filter(|l| eligible(l)) {
+                        if let Some(l) = self.located[i].filter(|l| usable(l, 1.0)) {
                             let d = l.range();
                             if d <= features::RANGE_M && features::clearly_nearer(d, reference) {
                                 self.near[i] = true;
