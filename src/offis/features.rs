@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 /// Surfaces beyond this are out of range for the TPO definitions (DESIGN.md: "none within 5 m").
 pub const RANGE_M: f64 = 5.0;
 /// Envelope points up to this range take part in the line fits (slack for depth noise).
-pub const FIT_RANGE_M: f64 = 6.5;
+pub const FIT_RANGE_M: f64 = 8.0;
 /// `open_ahead_m` / `front_m` when nothing is on the heading.
 pub const OPEN_AHEAD_MAX_M: f64 = 8.0;
 /// Most profile bins: finer grids are merged into this many bins (keeps the fit cheap).
@@ -184,7 +184,7 @@ fn contiguous(bins: &[Bin], line: &Line) -> u64 {
 /// The best line among the points of `free` (see the module doc), if it is a plane. Lines are
 /// scored MSAC-style, `Σ min(d², T²)` over the free points with `T` the inlier tolerance, so a
 /// line through the middle of a corner (many points, each far off) loses to one of its walls.
-fn best_line(bins: &[Bin], free: u64) -> Option<Line> {
+fn best_line(bins: &[Bin], free: u64, min_extent_m: f64) -> Option<Line> {
     let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
     let mut best: Option<(f64, u64)> = None;
     for (k, &i) in idx.iter().enumerate() {
@@ -215,11 +215,11 @@ fn best_line(bins: &[Bin], free: u64) -> Option<Line> {
     // one refinement: the refit line's own inliers, then the largest contiguous run of them
     let mut line = fit_mask(bins, inliers_of(bins, free, &first)).unwrap_or(first);
     line = fit_mask(bins, contiguous(bins, &line)).unwrap_or(line);
-    is_plane(&line).then_some(line)
+    is_plane(&line, min_extent_m).then_some(line)
 }
 
-fn is_plane(line: &Line) -> bool {
-    line.count() >= MIN_PLANE_POINTS && line.extent[1] - line.extent[0] >= MIN_PLANE_M
+fn is_plane(line: &Line, min_extent_m: f64) -> bool {
+    line.count() >= MIN_PLANE_POINTS && line.extent[1] - line.extent[0] >= min_extent_m
 }
 
 /// MSAC cost of explaining the points of `free` by `lines`: per point, the smallest squared
@@ -244,7 +244,13 @@ fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 
     let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
     for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
         let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
-        let (Some(a), Some(b)) = (best_line(bins, left), best_line(bins, free & !left)) else { continue };
+        let (Some(a), Some(b)) = (best_line(bins, left, CORNER_SIDE_M), best_line(bins, free & !left, CORNER_SIDE_M))
+        else {
+            continue;
+        };
+        if a.count() + b.count() < 2 * MIN_PLANE_POINTS + 2 {
+            continue;
+        }
         if angle_between(a.dir, b.dir) < SPLIT_MIN_DEG {
             continue;
         }
@@ -256,8 +262,10 @@ fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 
     best.1
 }
 
-/// See [`split`].
+/// See [`split`]. Each wall of a corner must span at least [`CORNER_SIDE_M`] (a near corner
+/// shows little of each wall) and the two hold at least 8 points together.
 pub const SPLIT_MARGIN: f64 = 1.0;
+pub const CORNER_SIDE_M: f64 = 0.5;
 pub const SPLIT_MIN_DEG: f64 = 12.0;
 
 /// The TPO's planes: up to two lines on the floor plan.
@@ -276,8 +284,8 @@ impl TpoModel {
                 free |= 1 << b;
             }
         }
-        let first = best_line(bins, free);
-        let second = first.and_then(|l| best_line(bins, free & !l.inliers));
+        let first = best_line(bins, free, MIN_PLANE_M);
+        let second = first.and_then(|l| best_line(bins, free & !l.inliers, MIN_PLANE_M));
         match split(bins, free, &[first, second]) {
             Some([a, b]) => Self { lines: [Some(a), Some(b)] },
             None => Self { lines: [first, second] },
