@@ -25,7 +25,9 @@ pub enum StepError {
     Offis(#[from] OffisError),
     #[error("MOFIS failed: {0}")]
     Mofis(#[from] MofisError),
-    #[error("frame {seq} is not newer than the previous frame (t {t_ns} ns after {prev_ns} ns): timestamps must increase")]
+    #[error(
+        "frame {seq} is not newer than the previous frame (t {t_ns} ns after {prev_ns} ns): timestamps must increase"
+    )]
     Time { seq: u64, t_ns: u64, prev_ns: u64 },
 }
 

@@ -105,7 +105,10 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         bail!("--velocity {} must be a finite speed in m/s", args.velocity);
     }
     if !args.frames.is_dir() {
-        bail!("frame folder {} does not exist or is not a folder (pass --frames DIR with PNG/JPEG frames)", args.frames.display());
+        bail!(
+            "frame folder {} does not exist or is not a folder (pass --frames DIR with PNG/JPEG frames)",
+            args.frames.display()
+        );
     }
     let folder = FrameFolder::open(&args.frames)?;
     let cfg = common.config()?;
@@ -117,7 +120,12 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         let image = load_luma(path)?;
         let m = folder.motion(i, args.velocity, args.fps);
         if m.t < 0.0 {
-            bail!("{}: frame {} has a negative time {} s; times must start at 0 or later", folder.dir.display(), i, m.t);
+            bail!(
+                "{}: frame {} has a negative time {} s; times must start at 0 or later",
+                folder.dir.display(),
+                i,
+                m.t
+            );
         }
         let frame = Frame { seq: i as u64, t_ns: (m.t * 1e9).round() as u64, image };
         let odometry = BodyVelocity::new(m.v, m.omega);

@@ -60,14 +60,18 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         Some((w, h)) => calib.scaled_to(w, h),
         None => calib,
     };
-    let opts =
-        BenchOptions { scenes: args.scenes, seed: args.seed, noise: args.noise, velocity: args.velocity, ..Default::default() };
+    let opts = BenchOptions {
+        scenes: args.scenes,
+        seed: args.seed,
+        noise: args.noise,
+        velocity: args.velocity,
+        ..Default::default()
+    };
     let started = std::time::Instant::now();
     let report = bench::run(&cfg, &calib, &opts, |i, s| {
         if args.verbose_scenes {
-            let obstacle = |o: Option<(f64, f64)>| {
-                o.map_or("-".to_string(), |(d, b)| format!("{d:.2} m {:+.1}°", b.to_degrees()))
-            };
+            let obstacle =
+                |o: Option<(f64, f64)>| o.map_or("-".to_string(), |(d, b)| format!("{d:.2} m {:+.1}°", b.to_degrees()));
             let got = s.obstacle.map(|(d, b)| (d.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN)));
             eprintln!(
                 "{i:4} {:<9} -> {:<9} {:.2} | obstacle {} -> {} | {}",

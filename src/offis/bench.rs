@@ -28,7 +28,7 @@ pub enum BenchError {
         index: usize,
         scene: String,
         #[source]
-        source: StepError,
+        source: Box<StepError>,
     },
     #[error("bench-offis: {0}")]
     Options(String),
@@ -212,7 +212,7 @@ pub fn run(
     if opts.scenes == 0 {
         return Err(BenchError::Options("--scenes must be at least 1".into()));
     }
-    if !(opts.velocity.is_finite() && opts.velocity > 0.0) || !(opts.fps[0] > 0.0 && opts.fps[1] >= opts.fps[0]) {
+    if !(opts.velocity.is_finite() && opts.velocity > 0.0 && opts.fps[0] > 0.0 && opts.fps[1] >= opts.fps[0]) {
         return Err(BenchError::Options("velocity and frame rates must be positive".into()));
     }
     let mut pipeline = Pipeline::new(cfg, calib.clone(), None)?;
@@ -235,7 +235,7 @@ pub fn run(
         let truth = GroundTruth::new(&c.scene.world, calib).frame(pose_b);
         let odo = BodyVelocity::new(opts.velocity, 0.0);
         pipeline.fail_safe();
-        let step_err = |source| BenchError::Step { index: i, scene: c.label.clone(), source };
+        let step_err = |source| BenchError::Step { index: i, scene: c.label.clone(), source: Box::new(source) };
         pipeline.step(Frame { seq: 0, t_ns: 1_000_000_000, image: img_a.clone() }, odo).map_err(step_err)?;
         let t_ns = 1_000_000_000 + (dt * 1e9).round() as u64;
         let out = pipeline
@@ -251,11 +251,18 @@ pub fn run(
             confidence: p.tpo.confidence,
             truth_tpo_m: truth.tpo.distance_m,
             tpo_m: p.tpo.distance_m,
-            truth_obstacle: truth.obstacle.distance_m.zip(truth.obstacle.bearing_rad).filter(|_| truth.obstacle.present),
+            truth_obstacle: truth
+                .obstacle
+                .distance_m
+                .zip(truth.obstacle.bearing_rad)
+                .filter(|_| truth.obstacle.present),
             obstacle: p.obstacle.present.then_some((p.obstacle.distance_m, p.obstacle.bearing_rad)),
             features: pipeline.offis().attributes().features,
             profile: pipeline.offis().attributes().bins.iter().map(|b| b.point).collect(),
-            obstacle_blocks: [pipeline.offis().attributes().obstacle_blocks, pipeline.offis().attributes().obstacle_cluster],
+            obstacle_blocks: [
+                pipeline.offis().attributes().obstacle_blocks,
+                pipeline.offis().attributes().obstacle_cluster,
+            ],
         };
         progress(i, &sample);
         samples.push(sample);

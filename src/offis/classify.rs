@@ -29,7 +29,9 @@ pub enum ClassifyError {
         #[source]
         source: FuzzyError,
     },
-    #[error("OFFIS rule base {origin}: input '{name}' is not a feature OFFIS computes (known: {known}); see docs/offis.md")]
+    #[error(
+        "OFFIS rule base {origin}: input '{name}' is not a feature OFFIS computes (known: {known}); see docs/offis.md"
+    )]
     UnknownInput { origin: String, name: String, known: String },
     #[error("OFFIS rule base {origin} lacks {what} '{name}', which OFFIS reads; see docs/offis.md")]
     Missing { origin: String, what: &'static str, name: String },
@@ -199,7 +201,14 @@ mod tests {
     use super::*;
 
     fn f() -> Features {
-        Features { near_frac: 1.0, planes: 1.0, side_angle_deg: 90.0, front_m: 3.0, open_ahead_m: 3.0, ..Default::default() }
+        Features {
+            near_frac: 1.0,
+            planes: 1.0,
+            side_angle_deg: 90.0,
+            front_m: 3.0,
+            open_ahead_m: 3.0,
+            ..Default::default()
+        }
     }
 
     #[test]

@@ -162,7 +162,9 @@ pub const MAX_HOLE_M: f64 = 1.8;
 fn contiguous(bins: &[Bin], line: &Line) -> u64 {
     let mut pts: Vec<(f64, usize)> = (0..bins.len())
         .filter(|&b| line.inliers >> b & 1 == 1)
-        .filter_map(|b| bins[b].point.map(|p| ((p[0] - line.centre[0]) * line.dir[0] + (p[1] - line.centre[1]) * line.dir[1], b)))
+        .filter_map(|b| {
+            bins[b].point.map(|p| ((p[0] - line.centre[0]) * line.dir[0] + (p[1] - line.centre[1]) * line.dir[1], b))
+        })
         .collect();
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     let (mut best, mut run, mut best_n, mut n) = (0u64, 0u64, 0, 0);
@@ -384,9 +386,10 @@ impl Features {
             [a, b] => angle_between(a.dir, b.dir),
             _ => 0.0,
         };
-        let side_angle_deg = planes.iter().map(|l| l.heading_angle_deg()).fold(None, |m: Option<f64>, a| {
-            Some(m.map_or(a, |m| m.max(a)))
-        });
+        let side_angle_deg = planes
+            .iter()
+            .map(|l| l.heading_angle_deg())
+            .fold(None, |m: Option<f64>, a| Some(m.map_or(a, |m| m.max(a))));
         let opposite = match planes[..] {
             [a, b] if a.side() * b.side() < 0.0 => 1.0,
             _ => 0.0,
@@ -401,7 +404,11 @@ impl Features {
         let heading_in_gap = gap_bearings.is_some_and(|[lo, hi]| lo <= 0.0 && 0.0 <= hi);
         // through a gap, the next plane behind it (if any)
         let open_ahead = if heading_in_gap {
-            planes.iter().filter_map(|l| l.hit(0.0, 0.5)).filter(|&t| front.is_none_or(|f| t > f + 0.3)).min_by(f64::total_cmp)
+            planes
+                .iter()
+                .filter_map(|l| l.hit(0.0, 0.5))
+                .filter(|&t| front.is_none_or(|f| t > f + 0.3))
+                .min_by(f64::total_cmp)
         } else {
             model.hit(0.0, 0.5)
         };

@@ -185,7 +185,15 @@ pub struct DepthParams {
 
 impl Default for DepthParams {
     fn default() -> Self {
-        Self { min_speed_m_s: 0.02, min_radius_frac: 0.02, min_radial_px: 0.05, max_depth_m: 30.0, floor_height_m: 0.1, reliable_radial_px: 0.3, floor_rel: 0.6 }
+        Self {
+            min_speed_m_s: 0.02,
+            min_radius_frac: 0.02,
+            min_radial_px: 0.05,
+            max_depth_m: 30.0,
+            floor_height_m: 0.1,
+            reliable_radial_px: 0.3,
+            floor_rel: 0.6,
+        }
     }
 }
 

@@ -31,8 +31,8 @@ pub mod synth;
 
 use crate::flow::FlowField;
 use crate::perception::{Obstacle, Perception, Tpo, TpoShape};
-pub use classify::{ClassifyError, Decision};
 use classify::Classifier;
+pub use classify::{ClassifyError, Decision};
 use features::{Bin, Features, TpoModel};
 use geometry::{DepthParams, FrameMotion, Located, PinholeCamera};
 use hal::{BodyVelocity, Calibration};
@@ -374,7 +374,8 @@ impl Offis {
                 for (k, m) in self.candidate.iter_mut().enumerate() {
                     *m = self.label[k] == label;
                 }
-                let cell = quadrants::zoom_in(&Quadrants::compute(grid, &self.u, &self.v, &self.candidate)).map(|z| z.l3);
+                let cell =
+                    quadrants::zoom_in(&Quadrants::compute(grid, &self.u, &self.v, &self.candidate)).map(|z| z.l3);
                 let o = Obstacle { present: true, distance_m: Some(distance), bearing_rad: Some(bearing), cell };
                 (o, size)
             }
@@ -382,7 +383,11 @@ impl Offis {
         };
 
         let tpo_distance = match decision.shape {
-            TpoShape::Wall | TpoShape::Door => model.planes().filter(|l| l.heading_angle_deg() >= 30.0).filter_map(|l| l.hit(0.0, 1.0)).min_by(f64::total_cmp),
+            TpoShape::Wall | TpoShape::Door => model
+                .planes()
+                .filter(|l| l.heading_angle_deg() >= 30.0)
+                .filter_map(|l| l.hit(0.0, 1.0))
+                .min_by(f64::total_cmp),
             TpoShape::Corner => features.vertex_m.or_else(|| model.hit(0.0, 1.0)),
             TpoShape::Corridor => {
                 // the nearest visible point of the side walls: where the image edge on each
