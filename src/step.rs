@@ -39,6 +39,8 @@ pub enum PipelineError {
     Mofis(#[from] MofisError),
     #[error(transparent)]
     Plan(#[from] PlanError),
+    #[error(transparent)]
+    Offis(#[from] crate::offis::ClassifyError),
 }
 
 /// What one step produced (the newer frame of the pair is `seq`, captured at `t_ns`).
@@ -92,7 +94,16 @@ impl Pipeline {
             Some((map, mission)) => Navigator::Mission(Box::new(Pafsis::new(map, mission, cfg.pafsis.clone())?)),
             None => Navigator::Cruise(cfg.pafsis.cruise_speed),
         };
-        Ok(Self { calib, frame_calib: None, flow, backend, offis: Offis::new(cfg.offis), navigator, mofis, prev: None })
+        Ok(Self {
+            calib,
+            frame_calib: None,
+            flow,
+            backend,
+            offis: Offis::new(cfg.offis.clone())?,
+            navigator,
+            mofis,
+            prev: None,
+        })
     }
 
     /// Which flow engine runs, and why.

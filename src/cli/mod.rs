@@ -7,10 +7,12 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
-pub mod devices;
+pub mod analyze;
+pub mod bench_offis;
 pub mod flow;
-pub mod log;
 pub mod render;
+pub mod devices;
+pub mod log;
 pub mod replay;
 pub mod run;
 pub mod sim_base;
@@ -72,6 +74,10 @@ pub enum Command {
     SimBase(sim_base::Args),
     /// Re-run the pipeline on a run log's frames and odometry; --check compares with the logged outputs.
     Replay(replay::Args),
+    /// Run OFFIS over a frame folder: one JSON line per frame pair (perception and set-point).
+    Analyze(analyze::Args),
+    /// OFFIS accuracy on a labelled simulated scene set: confusion matrix, obstacle errors.
+    BenchOffis(bench_offis::Args),
 }
 
 /// Runs one parsed command line.
@@ -84,6 +90,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::SimBase(args) => sim_base::run(args, &cli.common),
         Command::Run(args) => run::run(args, &cli.common),
         Command::Replay(args) => replay::run(args, &cli.common),
+        Command::Analyze(args) => analyze::run(args, &cli.common),
+        Command::BenchOffis(args) => bench_offis::run(args, &cli.common),
     }
 }
 
