@@ -16,6 +16,7 @@
 //! | [`sources`] | where `run` gets frames: `--camera /dev/videoN` (V4L2) or `frames:DIR` played as a camera | |
 //! | [`logging`] | MCAP run logs for Foxglove: the non-blocking writer, the replay reader, `log info` | |
 //! | [`step`] | the pure per-frame step: flow → OFFIS → PAFSIS → MOFIS → set-point (shared by run, sim, analyze, replay) | Fig. 3 |
+//! | [`sim`] | the closed loop of `flownav sim`: rendered camera → pipeline → FNP/1 driver → simulated base over a pty | |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
@@ -27,10 +28,11 @@ pub mod control;
 pub mod flow;
 pub mod frames;
 pub mod fuzzy;
+pub mod logging;
 pub mod mofis;
 pub mod offis;
 pub mod pafsis;
-pub mod logging;
 pub mod perception;
+pub mod sim;
 pub mod sources;
 pub mod step;

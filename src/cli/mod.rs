@@ -7,10 +7,11 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
-pub mod flow;
-pub mod render;
 pub mod devices;
+pub mod flow;
 pub mod log;
+pub mod render;
+pub mod sim;
 pub mod sim_base;
 
 #[derive(Debug, Parser)]
@@ -66,6 +67,8 @@ pub enum Command {
     Log(log::Args),
     /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
     SimBase(sim_base::Args),
+    /// Closed loop in a simulated world: rendered camera, the pipeline, a simulated base over a pty; ends with a JSON summary.
+    Sim(sim::Args),
 }
 
 /// Runs one parsed command line.
@@ -76,6 +79,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Devices(args) => devices::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
         Command::SimBase(args) => sim_base::run(args, &cli.common),
+        Command::Sim(args) => sim::run(args, &cli.common),
     }
 }
 
