@@ -7,12 +7,12 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
-pub mod devices;
 pub mod flow;
-pub mod log;
 pub mod render;
-pub mod sim;
+pub mod devices;
+pub mod log;
 pub mod sim_base;
+pub mod sim;
 
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
