@@ -37,8 +37,9 @@ TOPICS = {
     "/sim/world": {"foxglove.SceneUpdate"},
     "/log": {"foxglove.Log"},
     "/logger/stats": {"flownav.LoggerStats"},
+    "/step/input": {"flownav.StepInput"},
 }
-OPTIONAL = {"/logger/stats"}
+OPTIONAL = {"/logger/stats", "/step/input"}
 
 
 def main() -> int:

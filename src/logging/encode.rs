@@ -13,7 +13,7 @@ use super::foxglove::{
     KeyValuePair, Log, Point2, PointsAnnotation, Pose, Quaternion, SceneEntity, SceneEntityDeletion, SceneUpdate,
     TextAnnotation, Time, Vector3, points_type,
 };
-use super::payload::{GoalLog, LogLevel, PerceptionLog, Pose2D, SetpointLog, WorldGeometry};
+use super::payload::{GoalLog, LogLevel, PerceptionLog, Pose2D, SetpointLog, StepInputLog, WorldGeometry};
 use super::{FRAME_BASE, FRAME_CAMERA, FRAME_ODOM};
 use crate::flow::{FlowField, Validity};
 use crate::perception::Perception;
@@ -240,6 +240,11 @@ pub fn goal(g: &GoalLog) -> Vec<u8> {
 
 /// `/control/setpoint`.
 pub fn setpoint(s: &SetpointLog) -> Vec<u8> {
+    to_json(s)
+}
+
+/// `/step/input`.
+pub fn step_input(s: &StepInputLog) -> Vec<u8> {
     to_json(s)
 }
 

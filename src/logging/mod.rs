@@ -21,6 +21,7 @@ pub mod foxglove;
 mod info;
 pub mod payload;
 mod reader;
+pub mod record;
 pub mod sample;
 mod writer;
 
@@ -31,8 +32,8 @@ use std::time::{Duration, SystemTime};
 
 pub use info::{LogInfo, TopicInfo};
 pub use payload::{
-    BaseStatusLog, GoalLog, LogLevel, LoggerStats, PerceptionLog, Pose2D, SetpointLog, WorldBox, WorldCylinder,
-    WorldGeometry,
+    BaseStatusLog, GoalLog, LogLevel, LoggerStats, PerceptionLog, Pose2D, SetpointLog, StepInputLog, WorldBox,
+    WorldCylinder, WorldGeometry,
 };
 pub use reader::{LogEntry, LogEvent, LogReader, LoggedImage};
 pub use writer::{LogHandle, LogSummary, LogWriter};
@@ -177,10 +178,11 @@ pub(crate) enum Topic {
     World,
     Log,
     Stats,
+    StepInput,
 }
 
 impl Topic {
-    pub(crate) const COUNT: usize = 15;
+    pub(crate) const COUNT: usize = 16;
 
     pub(crate) fn name(self) -> &'static str {
         match self {
@@ -197,6 +199,7 @@ impl Topic {
             Topic::World => "/sim/world",
             Topic::Log => "/log",
             Topic::Stats => "/logger/stats",
+            Topic::StepInput => "/step/input",
         }
     }
 
@@ -216,6 +219,7 @@ impl Topic {
             Topic::World => "foxglove.SceneUpdate",
             Topic::Log => "foxglove.Log",
             Topic::Stats => "flownav.LoggerStats",
+            Topic::StepInput => "flownav.StepInput",
         }
     }
 
@@ -235,6 +239,7 @@ impl Topic {
             Topic::World => foxglove::scene_update_schema(),
             Topic::Log => foxglove::log_schema(),
             Topic::Stats => payload::stats_schema(),
+            Topic::StepInput => payload::step_input_schema(),
         }
     }
 }
@@ -303,6 +308,7 @@ mod tests {
             World,
             Log,
             Stats,
+            StepInput,
         ];
         assert_eq!(all.len(), Topic::COUNT);
         for t in all {

@@ -92,6 +92,39 @@ pub struct PerceptionLog {
     pub attributes: Value,
 }
 
+/// `/step/input`: what one call of the per-frame pipeline consumed, so `flownav replay` can feed
+/// the same inputs to a fresh [`crate::step::Pipeline`] (see docs/logging.md, "Replay").
+///
+/// `Step`: `Pipeline::step` gave an output for frame `seq` captured at `t_ns`, paired with the
+/// frame captured at `prev_t_ns`, with the odometry `v`, `omega` (bit-exact floats). `FailSafe`:
+/// `Pipeline::fail_safe` was called at `t_ns` (the limiter stopped, the previous frame forgotten).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum StepInputLog {
+    Step {
+        seq: u64,
+        t_ns: u64,
+        prev_t_ns: u64,
+        /// Forward speed fed to the step, m/s.
+        v: f64,
+        /// Turn rate fed to the step, rad/s, positive to the left.
+        omega: f64,
+    },
+    FailSafe {
+        t_ns: u64,
+        reason: String,
+    },
+}
+
+impl StepInputLog {
+    /// The time the entry is logged at, ns.
+    pub fn t_ns(&self) -> u64 {
+        match self {
+            StepInputLog::Step { t_ns, .. } | StepInputLog::FailSafe { t_ns, .. } => *t_ns,
+        }
+    }
+}
+
 /// The robot's planar pose in the odometry frame (`odom` → `base_link`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Pose2D {
@@ -280,6 +313,20 @@ pub fn base_status_schema() -> Value {
             "stopped_by_watchdog": {"type": "boolean"}, "motor_fault": {"type": "boolean"},
             "cliff": {"type": "boolean"}, "wheel_drop": {"type": "boolean"}},
         "required": ["t_ns", "bumper", "estop", "stopped_by_watchdog", "motor_fault", "cliff", "wheel_drop"]
+    })
+}
+
+/// `/step/input`: [`StepInputLog`].
+pub fn step_input_schema() -> Value {
+    json!({
+        "title": "flownav.StepInput",
+        "description": "What the per-frame pipeline consumed, for replay: kind \"step\" (frame seq at t_ns paired with the frame at prev_t_ns, odometry v m/s and omega rad/s) or \"fail_safe\" (the pipeline was stopped and reset at t_ns, with the reason)",
+        "type": "object",
+        "properties": {
+            "kind": {"type": "string", "enum": ["step", "fail_safe"]},
+            "seq": {"type": "integer"}, "t_ns": {"type": "integer"}, "prev_t_ns": {"type": "integer"},
+            "v": {"type": "number"}, "omega": {"type": "number"}, "reason": {"type": "string"}},
+        "required": ["kind", "t_ns"]
     })
 }
 

@@ -14,7 +14,7 @@ use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
 use super::base64;
 use super::foxglove::{CameraCalibration, CompressedImage, FrameTransform, Log, RawImage};
-use super::payload::{BaseStatusLog, GoalLog, LogLevel, LoggerStats, PerceptionLog, Pose2D, SetpointLog};
+use super::payload::{BaseStatusLog, GoalLog, LogLevel, LoggerStats, PerceptionLog, Pose2D, SetpointLog, StepInputLog};
 use super::{FRAME_BASE, FRAME_ODOM, LogError};
 use crate::flow::FlowField;
 
@@ -204,6 +204,8 @@ pub enum LogEvent {
     Goal(GoalLog),
     /// `/control/setpoint`.
     Setpoint(SetpointLog),
+    /// `/step/input`: what the pipeline consumed (for replay).
+    StepInput(StepInputLog),
     /// `/base/odometry`.
     Odometry(Odometry),
     /// `/base/status`.
@@ -463,6 +465,7 @@ fn decode(channel: &ChannelInfo, data: &[u8]) -> Result<LogEvent, String> {
         "flownav.Perception" => LogEvent::Perception(Box::new(parse(data)?)),
         "flownav.Goal" => LogEvent::Goal(parse(data)?),
         "flownav.Setpoint" => LogEvent::Setpoint(parse(data)?),
+        "flownav.StepInput" => LogEvent::StepInput(parse(data)?),
         "flownav.Odometry" => LogEvent::Odometry(parse(data)?),
         "flownav.BaseStatus" => LogEvent::BaseStatus(parse(data)?),
         "flownav.LoggerStats" => LogEvent::Stats(parse(data)?),

@@ -4,7 +4,7 @@
 //! Queue classes (each with its own cap on messages waiting):
 //! - **images** (`/camera/image`), small cap: dropped first when the writer falls behind;
 //! - **data** (flow, perception, goal, status, pose, world, calibration, log lines);
-//! - **critical** (set-points, odometry), a large cap that a healthy writer never reaches.
+//! - **critical** (set-points, odometry, `/step/input`), a large cap that a healthy writer never reaches.
 //!
 //! All classes share one FIFO channel, so the file keeps the order of the calls; the caps are
 //! enforced with counters, which is what makes a full class drop its own messages only.
@@ -25,7 +25,7 @@ use hal::{BaseStatus, Calibration, LumaImage, Odometry};
 use serde_json::Value;
 
 use super::encode;
-use super::payload::{BaseStatusLog, GoalLog, LogLevel, LoggerStats, Pose2D, SetpointLog, WorldGeometry};
+use super::payload::{BaseStatusLog, GoalLog, LogLevel, LoggerStats, Pose2D, SetpointLog, StepInputLog, WorldGeometry};
 use super::{LogError, LogOptions, SCHEMA_ENCODING, Topic, default_file_name, open_new};
 use crate::flow::FlowField;
 use crate::perception::Perception;
@@ -43,6 +43,7 @@ enum Item {
     Perception { t: u64, perception: Box<Perception>, attributes: Value },
     Goal { t: u64, goal: Box<GoalLog> },
     Setpoint { t: u64, setpoint: SetpointLog },
+    StepInput(Box<StepInputLog>),
     Odometry(Odometry),
     Status(BaseStatusLog),
     Pose { t: u64, pose: Pose2D },
@@ -55,7 +56,7 @@ impl Item {
     fn class(&self) -> usize {
         match self {
             Item::Jpeg { .. } | Item::Mono8 { .. } => IMAGES,
-            Item::Setpoint { .. } | Item::Odometry(_) => CRITICAL,
+            Item::Setpoint { .. } | Item::StepInput(_) | Item::Odometry(_) => CRITICAL,
             _ => DATA,
         }
     }
@@ -167,6 +168,12 @@ impl LogHandle {
     /// `/control/setpoint` (JSON). Never dropped below the critical cap.
     pub fn setpoint(&self, t_ns: u64, setpoint: &SetpointLog) -> bool {
         self.push(Item::Setpoint { t: t_ns, setpoint: *setpoint })
+    }
+
+    /// `/step/input` (JSON), stamped with the entry's `t_ns`: what the pipeline consumed, for
+    /// replay. Critical class, like set-points: a replay needs every one.
+    pub fn step_input(&self, input: &StepInputLog) -> bool {
+        self.push(Item::StepInput(Box::new(input.clone())))
     }
 
     /// `/base/odometry` (JSON), stamped with `odometry.t_ns`. Never dropped below the critical cap.
@@ -632,6 +639,7 @@ impl Worker {
             }
             Item::Goal { t, goal } => self.emit(Topic::Goal, t, &encode::goal(&goal)),
             Item::Setpoint { t, setpoint } => self.emit(Topic::Setpoint, t, &encode::setpoint(&setpoint)),
+            Item::StepInput(input) => self.emit(Topic::StepInput, input.t_ns(), &encode::step_input(&input)),
             Item::Odometry(o) => self.emit(Topic::Odometry, o.t_ns, &encode::odometry(&o)),
             Item::Status(s) => {
                 let data = serde_json::to_vec(&s).unwrap_or_default();
