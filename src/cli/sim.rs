@@ -4,7 +4,8 @@
 //! `--seeds A..B` runs one mission per seed and adds an aggregate line.
 
 use super::Common;
-use crate::logging::{LogOptions, LogWriter};
+use crate::logging::LogWriter;
+use crate::logging::record;
 use crate::pafsis::{Mission, TopoMap};
 use crate::sim::{self, OFFICE_MAP_TOML, SimSetup, SimSummary};
 use anyhow::Context;
@@ -196,7 +197,12 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
             );
         }
         let log = match &log_dir {
-            Some(dir) => Some(LogWriter::create(dir, LogOptions::new("sim")).context("opening the MCAP log")?),
+            Some(dir) => {
+                let mission = setup.mission.to_string();
+                let mut options = record::run_options("sim", &setup.config, &setup.calib, Some(&mission), None);
+                record::add_map(&mut options, &setup.map);
+                Some(LogWriter::create(dir, options).context("opening the MCAP log")?)
+            }
             None => None,
         };
         let handle = log.as_ref().map(|l| l.handle());

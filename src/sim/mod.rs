@@ -30,7 +30,8 @@
 //! collisions, and to score the run.
 
 use crate::config::Config;
-use crate::logging::{GoalLog, LogHandle, LogLevel, Pose2D, SetpointLog, WorldBox, WorldCylinder, WorldGeometry};
+use crate::logging::record::{self, RecordImage};
+use crate::logging::{LogHandle, LogLevel, Pose2D, WorldBox, WorldCylinder, WorldGeometry};
 use crate::pafsis::{GoalStatus, Mission, TopoMap};
 use crate::perception::TpoShape;
 use crate::step::{Pipeline, PipelineError, StepOutput};
@@ -387,7 +388,7 @@ pub async fn run(
         renderer.render_frame(prev_w, pose_w, &effects, k, &mut image);
         let frame = Frame { seq: k, t_ns, image: image.clone() };
         if let Some(log) = log {
-            log.image_mono8(t_ns, &frame.image);
+            record::record_frame(log, &frame, RecordImage::Mono8(&frame.image));
             log.pose(t_ns, &Pose2D { x_m: pose.x, y_m: pose.y, theta_rad: pose.yaw });
         }
         frames += 1;
@@ -397,7 +398,7 @@ pub async fn run(
                 tpo_frames[TpoShape::ALL.iter().position(|s| *s == out.perception.tpo.shape).unwrap_or(4)] += 1;
                 status = out.goal.status;
                 if let Some(log) = log {
-                    log_step(log, &out, &pipeline);
+                    record::record_step(log, odometry, &out, &pipeline);
                 }
                 last_output = Some(out);
                 setpoint
@@ -408,7 +409,7 @@ pub async fn run(
                 let setpoint = pipeline.fail_safe();
                 tracing::warn!("t {t_s:.2} s: step failed ({e}); commanding a stop");
                 if let Some(log) = log {
-                    log.log(t_ns, LogLevel::Warning, format!("step failed, stopping: {e}"));
+                    record::record_failsafe(log, t_ns, &format!("step failed: {e}"));
                 }
                 setpoint
             }
@@ -512,24 +513,4 @@ fn round3(x: f64) -> f64 {
 
 fn stalled(t_s: f64, what: &'static str, setup: &SimSetup) -> SimError {
     SimError::Stalled { t_s, what, timeout_ms: setup.link_timeout.as_millis() }
-}
-
-fn log_step(log: &LogHandle, out: &StepOutput, pipeline: &Pipeline) {
-    let t = out.t_ns;
-    log.flow(t, &out.flow);
-    log.perception(t, &out.perception, serde_json::to_value(pipeline.offis().attributes()).unwrap_or_default());
-    let progress = pipeline.pafsis().map(|p| p.progress());
-    log.goal(
-        t,
-        &GoalLog {
-            v: out.goal.velocity,
-            angle_rad: out.goal.angle_rad,
-            waypoint: progress.as_ref().map(|p| p.description.clone()),
-            waypoint_index: progress.as_ref().map(|p| p.leg as u32),
-            remaining_m: None,
-        },
-    );
-    let sp = out.setpoint();
-    let clamped = sp != out.mofis.fused;
-    log.setpoint(t, &SetpointLog { v: sp.v, omega: sp.omega, clamped, requested: clamped.then_some(out.mofis.fused) });
 }
