@@ -40,7 +40,7 @@ use hal::fnp_driver::{FnpBase, FnpConfig, SerialBaseError};
 use hal::{BaseEvent, BodyVelocity, Calibration, Frame, LumaImage, MotorBase};
 use mocks::kinematics::{CollisionFn, Pose as KPose};
 use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimDevice, SimServer};
-use mocks::{Effects, Pose, Renderer, World};
+use mocks::{Effects, GroundTruth, Pose, Renderer, World};
 use serde::Serialize;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -118,11 +118,16 @@ impl SimSetup {
     /// position), facing the map's `heading_deg` of that place.
     pub fn start_pose(&self) -> Result<Pose, SimError> {
         let [x, y] = self.place_position(&self.mission.from)?;
+        // As PAFSIS assumes: the place's heading, else the first edge's direction of the plan.
+        let first_edge = crate::pafsis::plan(&self.map, &self.mission)
+            .ok()
+            .and_then(|p| p.edges.first().map(|&k| self.map.edges[k].heading_deg.to_radians()));
         let yaw = self
             .map
             .place(&self.mission.from)
             .and_then(|p| p.heading_deg)
             .map(f64::to_radians)
+            .or(first_edge)
             .unwrap_or(self.world.start.yaw);
         Ok(Pose::new(x, y, yaw))
     }
@@ -201,6 +206,9 @@ pub struct Progress {
     pub tpo_confidence: f64,
     pub tpo_distance_m: Option<f64>,
     pub obstacle_m: Option<f64>,
+    pub obstacle_bearing_rad: Option<f64>,
+    /// Ground truth at this pose (for the display only; never given to the pipeline).
+    pub truth: mocks::FrameTruth,
     pub setpoint: BodyVelocity,
     pub status: GoalStatus,
     pub leg: String,
@@ -211,9 +219,10 @@ pub struct Progress {
 impl std::fmt::Display for Progress {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let opt = |d: Option<f64>| d.map_or("-".to_string(), |d| format!("{d:.1}"));
+        let deg = |d: Option<f64>| d.map_or("-".to_string(), |d| format!("{:+.0}", d.to_degrees()));
         write!(
             f,
-            "t {:5.1} s  pose ({:6.2}, {:5.2}, {:4.0}°)  TPO {:<8} {:.2} d {:>4} m  obstacle {:>4} m  v {:.2} ω {:+.2}  clear {:.2} m  {:?}: {}",
+            "t {:5.1} s  pose ({:6.2}, {:5.2}, {:4.0}°)  TPO {:<8} {:.2} d {:>4} m (true {:<8} {:>4})  obstacle {:>4} m {:>4}° (true {:>4} m {:>4}°)  v {:.2} ω {:+.2}  clear {:.2} m  {:?}: {}",
             self.t_s,
             self.pose.x,
             self.pose.y,
@@ -221,7 +230,12 @@ impl std::fmt::Display for Progress {
             self.tpo.name(),
             self.tpo_confidence,
             opt(self.tpo_distance_m),
+            format!("{:?}", self.truth.tpo.shape).to_lowercase(),
+            opt(self.truth.tpo.distance_m),
             opt(self.obstacle_m),
+            deg(self.obstacle_bearing_rad),
+            opt(self.truth.obstacle.distance_m),
+            deg(self.truth.obstacle.bearing_rad),
             self.setpoint.v,
             self.setpoint.omega,
             self.clearance_m,
@@ -300,6 +314,7 @@ pub async fn run(
     let mut pipeline =
         Pipeline::new(&setup.config, setup.calib.clone(), Some((setup.map.clone(), setup.mission.clone())))?;
     let renderer = Renderer::new(&setup.world, &setup.calib);
+    let truth = GroundTruth::new(&setup.world, &setup.calib);
     let effects = Effects { noise_sigma: setup.noise_sigma, seed: setup.seed, ..Effects::default() };
 
     // The simulated base: firmware state machine on a pty, time moved by hand.
@@ -461,6 +476,8 @@ pub async fn run(
                 tpo_confidence: tpo.confidence,
                 tpo_distance_m: tpo.distance_m,
                 obstacle_m: last_output.as_ref().and_then(|o| o.perception.obstacle.distance_m),
+                obstacle_bearing_rad: last_output.as_ref().and_then(|o| o.perception.obstacle.bearing_rad),
+                truth: truth.frame(pose),
                 setpoint,
                 status,
                 leg,
