@@ -196,6 +196,17 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
                 start.yaw.to_degrees()
             );
         }
+        if !args.quiet {
+            let nav =
+                crate::pafsis::Pafsis::new(setup.map.clone(), setup.mission.clone(), setup.config.pafsis.clone())?;
+            let legs: Vec<String> = nav.legs().iter().map(|l| l.to_string()).collect();
+            eprintln!(
+                "plan: {} ({:.1} m); legs: {}",
+                nav.plan().waypoints.join(" → "),
+                nav.plan().length_m,
+                legs.join("; ")
+            );
+        }
         let log = match &log_dir {
             Some(dir) => {
                 let mission = setup.mission.to_string();

@@ -19,11 +19,13 @@
 //! even though the bytes cross a real pty and a real driver task.
 //!
 //! The driver's own timers (set-point repeat at 25 Hz, 500 ms silence, 500 ms command timeout)
-//! run on tokio's real clock, not on simulated time. This is harmless because every tick sends a
-//! fresh set-point (the repeats only re-send the same value, which the firmware applies again
-//! unchanged) and every tick produces ODOM frames, so the link never looks silent unless one
-//! tick takes longer than 500 ms of wall time. The firmware's 250 ms watchdog runs on simulated
-//! time and is fed by the per-tick set-point (a tick is 33 ms).
+//! run on tokio's real clock, not on simulated time. The repeats are harmless: every tick sends a
+//! fresh set-point and a repeat only re-sends the same value, which the firmware applies again
+//! unchanged. The silence and command timeouts would fire whenever one tick takes longer than
+//! 500 ms of wall time (a loaded host, a slow render), although no simulated time passed; the
+//! simulation widens both to the per-tick link timeout ([`SimSetup::link_timeout`], 30 s). The
+//! firmware's 250 ms watchdog runs on simulated time and is fed by the per-tick set-point (a tick
+//! is 33 ms), so it still stops the base if the loop stops sending.
 //!
 //! Honesty: no ground-truth pose enters the pipeline. PAFSIS sees only OFFIS's perception of the
 //! rendered frames and the driver's odometry; the true pose is used to render, to detect
@@ -110,7 +112,7 @@ impl SimSetup {
             realtime: false,
             robot_radius_m: ROBOT_RADIUS_M,
             goal_tolerance_m: GOAL_TOLERANCE_M,
-            link_timeout: Duration::from_secs(2),
+            link_timeout: Duration::from_secs(30),
         }
     }
 
@@ -331,7 +333,13 @@ pub async fn run(
         b.drive().set_pose(KPose::new(start.x, start.y, start.yaw));
         b.set_collision(Some(collision));
     });
-    let mut base = FnpBase::connect(FnpConfig::new(server.pty_path().to_string_lossy())).await?;
+    // The driver's wall-clock timers must not fire because a tick took long on a loaded host
+    // (simulated time only moves when the loop is ready): widen them to the per-tick link
+    // timeout. The firmware's 250 ms watchdog, in simulated time, still guards every tick.
+    let mut driver_cfg = FnpConfig::new(server.pty_path().to_string_lossy());
+    driver_cfg.silence_timeout = driver_cfg.silence_timeout.max(setup.link_timeout);
+    driver_cfg.command_timeout = driver_cfg.command_timeout.map(|t| t.max(setup.link_timeout));
+    let mut base = FnpBase::connect(driver_cfg).await?;
 
     if let Some(log) = log {
         log.calibration(0, &setup.calib);
