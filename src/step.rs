@@ -95,7 +95,7 @@ impl Pipeline {
             frame_calib: None,
             flow,
             backend,
-            offis: Offis::new(cfg.offis.clone()),
+            offis: Offis::new(cfg.offis),
             navigator,
             mofis,
             prev: None,
