@@ -23,7 +23,7 @@ fn bench(c: &mut Criterion) {
     let vel = BodyVelocity::new(0.3, 0.2);
     let dt = 1.0 / 30.0;
     let field = scene.flow(&calib, 16, 16, vel, dt).field;
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).expect("built-in rules");
     c.bench_function("offis_step_16x16", |b| {
         b.iter(|| offis.step(black_box(&field), vel, dt, &calib).expect("valid field"))
     });

@@ -37,6 +37,8 @@ pub enum PipelineError {
     Mofis(#[from] MofisError),
     #[error(transparent)]
     Plan(#[from] PlanError),
+    #[error(transparent)]
+    Offis(#[from] crate::offis::ClassifyError),
 }
 
 /// What one step produced (the newer frame of the pair is `seq`, captured at `t_ns`).
@@ -95,7 +97,7 @@ impl Pipeline {
             frame_calib: None,
             flow,
             backend,
-            offis: Offis::new(cfg.offis),
+            offis: Offis::new(cfg.offis.clone())?,
             navigator,
             mofis,
             prev: None,

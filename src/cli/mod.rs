@@ -7,6 +7,8 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
+pub mod analyze;
+pub mod bench_offis;
 pub mod flow;
 pub mod render;
 pub mod devices;
@@ -69,6 +71,10 @@ pub enum Command {
     SimBase(sim_base::Args),
     /// Closed loop in a simulated world: rendered camera, the pipeline, a simulated base over a pty; ends with a JSON summary.
     Sim(sim::Args),
+    /// Run OFFIS over a frame folder: one JSON line per frame pair (perception and set-point).
+    Analyze(analyze::Args),
+    /// OFFIS accuracy on a labelled simulated scene set: confusion matrix, obstacle errors.
+    BenchOffis(bench_offis::Args),
 }
 
 /// Runs one parsed command line.
@@ -80,6 +86,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Log(args) => log::run(args, &cli.common),
         Command::SimBase(args) => sim_base::run(args, &cli.common),
         Command::Sim(args) => sim::run(args, &cli.common),
+        Command::Analyze(args) => analyze::run(args, &cli.common),
+        Command::BenchOffis(args) => bench_offis::run(args, &cli.common),
     }
 }
 

@@ -1,62 +1,109 @@
-//! Features for the situation classifiers (paper §5, Fig. 11–13): what the fuzzy rule bases
-//! read. The paper's rule tables are figures only; these features are our design (see
-//! `docs/offis.md`). The geometric ones come from the *horizon profile*: per layer-3 column,
-//! the median located point of the blocks in a band of rows around the camera's horizon, where
-//! the planes are probed without the floor or a door's lintel — an 8-ray scan of the TPO.
+//! The TPO model and the features of the situation classifiers (paper §5, Fig. 11–13), and the
+//! reference the obstacle decision compares against. The paper's rule tables are figures only;
+//! this design is ours (see `docs/offis.md`).
+//!
+//! **Envelope profile.** The image is cut into at most [`MAX_BINS`] vertical bins (one per
+//! block column on the paper's 16×16 grid). In each bin, the located blocks between the floor
+//! and [`TOP_M`] give horizontal ranges; the bin's *envelope point* is the block at the 75th
+//! percentile of range. TPO planes (walls) are vertical and reach from the floor to the
+//! ceiling, obstacles (boxes, people) stand in front of them: where the wall shows above or
+//! beside an obstacle, the envelope is the wall.
+//!
+//! **TPO model.** At most two straight lines fitted to the envelope points on the floor plan by
+//! exhaustive two-point consensus (every pair of points proposes a line; the one with the most
+//! points within `0.06 m + 6 %` of their range wins, then a total-least-squares refit). A line
+//! is a TPO plane only if its inliers span at least [`MIN_PLANE_M`] (a box face or a person is
+//! narrower). The second line is fitted to the points the first leaves.
+//!
+//! **Features** (inputs of `rules/offis/*.toml`): how much of the view the planes cover, how
+//! many planes, their angle to each other and to the heading, whether two planes lie on
+//! opposite sides of the heading, the distance to the plane ahead and to the first surface
+//! actually on the heading, and the widest gap in a plane that shows a surface beyond it.
 
 use serde::{Deserialize, Serialize};
 
 /// Surfaces beyond this are out of range for the TPO definitions (DESIGN.md: "none within 5 m").
 pub const RANGE_M: f64 = 5.0;
-/// `open_ahead_m` when nothing straight ahead is measurable.
+/// Envelope points up to this range take part in the line fits (slack for depth noise).
+pub const FIT_RANGE_M: f64 = 6.5;
+/// `open_ahead_m` / `front_m` when nothing is on the heading.
 pub const OPEN_AHEAD_MAX_M: f64 = 8.0;
+/// Most profile bins: finer grids are merged into this many bins (keeps the fit cheap).
+pub const MAX_BINS: usize = 16;
+/// Blocks located higher than this above the floor are ignored by the profile and the obstacle
+/// decision (ceiling, a door's lintel).
+pub const TOP_M: f64 = 1.95;
+/// The profile uses blocks at least this fraction of the camera height above the floor.
+pub const PROFILE_MIN_REL: f64 = 0.75;
+/// A TPO plane's inliers span at least this along the line, m.
+pub const MIN_PLANE_M: f64 = 0.9;
+/// Fewest inliers of a TPO plane.
+pub const MIN_PLANE_POINTS: usize = 3;
 
-/// One profile point: the median (forward, left) in robot axes from the camera, m.
-pub type ProfilePoint = Option<[f64; 2]>;
-
-/// The classifier inputs for one frame pair.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Features {
-    /// Forward distance of the surface straight ahead (profile columns 3 and 4), m, capped at
-    /// [`OPEN_AHEAD_MAX_M`] (also its value when nothing there is measurable).
-    pub open_ahead_m: f64,
-    /// Fraction of the 8 profile columns with a surface within [`RANGE_M`].
-    pub near_frac: f64,
-    /// RMS distance of the near profile points from one fitted line, relative to their mean
-    /// range: ~0 for a wall or a door's coplanar halves, large for a corner.
-    pub line_resid: f64,
-    /// Angle between the lines fitted left and right of the best split of the near points,
-    /// degrees in [0, 90]: ≥ 20 for a corner.
-    pub corner_angle_deg: f64,
-    /// The larger angle to the heading of the lines fitted to the near points on the left and on
-    /// the right, degrees in [0, 90] (90 when a side has fewer than 2 points): ≤ 15 in a corridor.
-    pub side_angle_deg: f64,
-    /// Fraction of the columns between the outermost near points that lie beyond the line
-    /// through those two points by more than 0.3 m, or have no point: a door's opening when the
-    /// flanks are one plane (small `line_resid` and `corner_angle_deg`); a corridor or a concave
-    /// corner is also open behind that chord, so the rules never read it alone.
-    pub gap_frac: f64,
+/// One profile bin: its envelope point (forward, left) from the camera, m, and the bearing of
+/// its centre, rad (+ left).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Bin {
+    pub point: Option<[f64; 2]>,
+    pub bearing: f64,
 }
 
-/// Total-least-squares line through `pts`: (centroid, unit direction, RMS residual).
-fn fit_line(pts: &[[f64; 2]]) -> Option<([f64; 2], [f64; 2], f64)> {
-    if pts.len() < 2 {
-        return None;
+/// Inlier tolerance of a line fit at range `r`, m.
+fn tolerance(r: f64) -> f64 {
+    0.06 + 0.06 * r
+}
+
+fn range(p: [f64; 2]) -> f64 {
+    p[0].hypot(p[1])
+}
+
+/// A fitted plane seen from above: a line on the floor plan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Line {
+    /// A point on the line (centroid of the inliers) and its unit direction, robot axes, m.
+    pub centre: [f64; 2],
+    pub dir: [f64; 2],
+    /// Inlier bins (bit `b` = bin `b`).
+    pub inliers: u64,
+    /// Extent of the inliers along `dir` from `centre`, m.
+    pub extent: [f64; 2],
+}
+
+impl Line {
+    /// Perpendicular distance of `p`, m.
+    pub fn distance(&self, p: [f64; 2]) -> f64 {
+        ((p[0] - self.centre[0]) * self.dir[1] - (p[1] - self.centre[1]) * self.dir[0]).abs()
     }
-    let n = pts.len() as f64;
-    let mx = pts.iter().map(|p| p[0]).sum::<f64>() / n;
-    let my = pts.iter().map(|p| p[1]).sum::<f64>() / n;
-    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
-    for p in pts {
-        let (dx, dy) = (p[0] - mx, p[1] - my);
-        sxx += dx * dx;
-        syy += dy * dy;
-        sxy += dx * dy;
+
+    /// Range along the ray at `bearing` to where it meets the line, if ahead of the camera and
+    /// within the inliers' extent widened by `slack_m`.
+    pub fn hit(&self, bearing: f64, slack_m: f64) -> Option<f64> {
+        let r = [bearing.cos(), bearing.sin()];
+        // centre + s·dir = t·r
+        let det = r[0] * (-self.dir[1]) - r[1] * (-self.dir[0]);
+        if det.abs() < 1e-9 {
+            return None;
+        }
+        let (cx, cy) = (self.centre[0], self.centre[1]);
+        let t = (cx * (-self.dir[1]) - cy * (-self.dir[0])) / det;
+        let s = (r[0] * cy - r[1] * cx) / det;
+        (t > 0.0 && s >= self.extent[0] - slack_m && s <= self.extent[1] + slack_m).then_some(t)
     }
-    let theta = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-    let d = [theta.cos(), theta.sin()];
-    let resid = (pts.iter().map(|p| ((p[0] - mx) * d[1] - (p[1] - my) * d[0]).powi(2)).sum::<f64>() / n).sqrt();
-    Some(([mx, my], d, resid))
+
+    /// Angle between the line and the heading, degrees in [0, 90]: 0 for a corridor's side
+    /// wall, 90 for a frontal wall.
+    pub fn heading_angle_deg(&self) -> f64 {
+        self.dir[0].abs().min(1.0).acos().to_degrees()
+    }
+
+    /// Lateral offset of the line's centre, m (+ left).
+    pub fn side(&self) -> f64 {
+        self.centre[1]
+    }
+
+    fn count(&self) -> usize {
+        self.inliers.count_ones() as usize
+    }
 }
 
 /// Angle between two undirected directions, degrees in [0, 90].
@@ -64,62 +111,428 @@ fn angle_between(a: [f64; 2], b: [f64; 2]) -> f64 {
     (a[0] * b[0] + a[1] * b[1]).abs().min(1.0).acos().to_degrees()
 }
 
+/// Total-least-squares line through the points of `bins` selected by `mask`.
+fn fit_mask(bins: &[Bin], mask: u64) -> Option<Line> {
+    let pts = || bins.iter().enumerate().filter(move |(b, _)| mask >> b & 1 == 1).filter_map(|(_, x)| x.point);
+    let n = pts().count();
+    if n < 2 {
+        return None;
+    }
+    let nf = n as f64;
+    let mx = pts().map(|p| p[0]).sum::<f64>() / nf;
+    let my = pts().map(|p| p[1]).sum::<f64>() / nf;
+    let (mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0);
+    for p in pts() {
+        let (dx, dy) = (p[0] - mx, p[1] - my);
+        sxx += dx * dx;
+        syy += dy * dy;
+        sxy += dx * dy;
+    }
+    let theta = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    let dir = [theta.cos(), theta.sin()];
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for p in pts() {
+        let s = (p[0] - mx) * dir[0] + (p[1] - my) * dir[1];
+        lo = lo.min(s);
+        hi = hi.max(s);
+    }
+    Some(Line { centre: [mx, my], dir, inliers: mask, extent: [lo, hi] })
+}
+
+/// Bins of `free` whose point lies within tolerance of `line`.
+fn inliers_of(bins: &[Bin], free: u64, line: &Line) -> u64 {
+    let mut m = 0;
+    for (b, bin) in bins.iter().enumerate() {
+        if free >> b & 1 == 1
+            && let Some(p) = bin.point
+            && line.distance(p) <= tolerance(range(p))
+        {
+            m |= 1 << b;
+        }
+    }
+    m
+}
+
+/// Largest spacing along a plane between neighbouring inliers, m: a wider hole splits the
+/// inliers into separate surfaces (a door opening is at most ~1.4 m, plus a bin either side).
+pub const MAX_HOLE_M: f64 = 1.8;
+
+/// Keeps the largest run of `line`'s inliers whose neighbours along the line are at most
+/// [`MAX_HOLE_M`] apart (two collinear but separate objects are not one plane).
+fn contiguous(bins: &[Bin], line: &Line) -> u64 {
+    let mut pts: Vec<(f64, usize)> = (0..bins.len())
+        .filter(|&b| line.inliers >> b & 1 == 1)
+        .filter_map(|b| bins[b].point.map(|p| ((p[0] - line.centre[0]) * line.dir[0] + (p[1] - line.centre[1]) * line.dir[1], b)))
+        .collect();
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut best, mut run, mut best_n, mut n) = (0u64, 0u64, 0, 0);
+    for (k, &(s, b)) in pts.iter().enumerate() {
+        if k > 0 && s - pts[k - 1].0 > MAX_HOLE_M {
+            run = 0;
+            n = 0;
+        }
+        run |= 1 << b;
+        n += 1;
+        if n > best_n {
+            best_n = n;
+            best = run;
+        }
+    }
+    best
+}
+
+/// The best line among the points of `free` (see the module doc), if it is a plane. Lines are
+/// scored MSAC-style, `Σ min(d², T²)` over the free points with `T` the inlier tolerance, so a
+/// line through the middle of a corner (many points, each far off) loses to one of its walls.
+fn best_line(bins: &[Bin], free: u64) -> Option<Line> {
+    let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
+    let mut best: Option<(f64, u64)> = None;
+    for (k, &i) in idx.iter().enumerate() {
+        for &j in &idx[k + 1..] {
+            let (Some(a), Some(b)) = (bins[i].point, bins[j].point) else { continue };
+            let len = (b[0] - a[0]).hypot(b[1] - a[1]);
+            if len < 1e-6 {
+                continue;
+            }
+            let line = Line { centre: a, dir: [(b[0] - a[0]) / len, (b[1] - a[1]) / len], ..Line::default() };
+            let mut cost = 0.0;
+            let mut m = 0u64;
+            for &q in &idx {
+                let p = bins[q].point.expect("free bins have points");
+                let (d, t) = (line.distance(p), tolerance(range(p)));
+                if d <= t {
+                    m |= 1 << q;
+                }
+                cost += d.min(t).powi(2) / (t * t);
+            }
+            if best.is_none_or(|(bc, _)| cost < bc) {
+                best = Some((cost, m));
+            }
+        }
+    }
+    let (_, mask) = best?;
+    let first = fit_mask(bins, mask)?;
+    // one refinement: the refit line's own inliers, then the largest contiguous run of them
+    let mut line = fit_mask(bins, inliers_of(bins, free, &first)).unwrap_or(first);
+    line = fit_mask(bins, contiguous(bins, &line)).unwrap_or(line);
+    is_plane(&line).then_some(line)
+}
+
+fn is_plane(line: &Line) -> bool {
+    line.count() >= MIN_PLANE_POINTS && line.extent[1] - line.extent[0] >= MIN_PLANE_M
+}
+
+/// MSAC cost of explaining the points of `free` by `lines`: per point, the smallest squared
+/// distance to a line over the squared tolerance, at most 1 (an unexplained point costs 1).
+fn cost(bins: &[Bin], free: u64, lines: &[Option<Line>; 2]) -> f64 {
+    (0..bins.len())
+        .filter(|&b| free >> b & 1 == 1)
+        .filter_map(|b| bins[b].point)
+        .map(|p| {
+            let t = tolerance(range(p));
+            lines.iter().flatten().map(|l| (l.distance(p) / t).powi(2)).fold(1.0, f64::min)
+        })
+        .sum()
+}
+
+/// A corner: the best split of the points in bin order into a left and a right plane that meet
+/// at [`SPLIT_MIN_DEG`] or more (each side fitted like the first plane), if it explains the
+/// points better than `current` by at least [`SPLIT_MARGIN`]. The sequential fit can miss a
+/// shallow corner, whose two walls stay within the tolerance of one line through its middle.
+fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
+    let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
+    let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
+    for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
+        let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
+        let (Some(a), Some(b)) = (best_line(bins, left), best_line(bins, free & !left)) else { continue };
+        if angle_between(a.dir, b.dir) < SPLIT_MIN_DEG {
+            continue;
+        }
+        let c = cost(bins, free, &[Some(a), Some(b)]);
+        if c < best.0 {
+            best = (c, Some([a, b]));
+        }
+    }
+    best.1
+}
+
+/// See [`split`].
+pub const SPLIT_MARGIN: f64 = 1.0;
+pub const SPLIT_MIN_DEG: f64 = 12.0;
+
+/// The TPO's planes: up to two lines on the floor plan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct TpoModel {
+    /// The plane with the most support first.
+    pub lines: [Option<Line>; 2],
+}
+
+impl TpoModel {
+    /// Fits the model to the envelope points within [`FIT_RANGE_M`] (at most 64 bins).
+    pub fn fit(bins: &[Bin]) -> Self {
+        let mut free = 0u64;
+        for (b, bin) in bins.iter().enumerate().take(64) {
+            if bin.point.is_some_and(|p| range(p) <= FIT_RANGE_M) {
+                free |= 1 << b;
+            }
+        }
+        let first = best_line(bins, free);
+        let second = first.and_then(|l| best_line(bins, free & !l.inliers));
+        match split(bins, free, &[first, second]) {
+            Some([a, b]) => Self { lines: [Some(a), Some(b)] },
+            None => Self { lines: [first, second] },
+        }
+    }
+
+    pub fn planes(&self) -> impl Iterator<Item = &Line> {
+        self.lines.iter().flatten()
+    }
+
+    /// Whether bin `b` is an inlier of a plane.
+    pub fn is_inlier(&self, b: usize) -> bool {
+        self.planes().any(|l| l.inliers >> b & 1 == 1)
+    }
+
+    /// Nearest range along `bearing` to a plane (within its extent widened by `slack_m`).
+    pub fn hit(&self, bearing: f64, slack_m: f64) -> Option<f64> {
+        self.planes().filter_map(|l| l.hit(bearing, slack_m)).min_by(f64::total_cmp)
+    }
+
+    /// The range the TPO's surface has in bin `b`: what an obstacle must be clearly nearer
+    /// than. The bin's own envelope point when it is a plane's inlier, or beyond the planes, or
+    /// no plane passes there; the plane's range when the envelope point is clearly nearer than
+    /// a plane (an obstacle hides the plane in the whole bin) or missing; infinite when nothing
+    /// but unexplained surfaces is there (no TPO: anything within range is an obstacle).
+    pub fn expected_range(&self, bins: &[Bin], b: usize) -> f64 {
+        let bin = bins[b];
+        let plane = self.hit(bin.bearing, 1.5);
+        match (bin.point, plane) {
+            (Some(p), _) if self.is_inlier(b) => range(p),
+            (Some(p), Some(h)) if !clearly_nearer(range(p), h) => range(p),
+            (_, Some(h)) => h,
+            (Some(_), None) => f64::INFINITY,
+            (None, None) => f64::INFINITY,
+        }
+    }
+}
+
+/// The obstacle test: range `r` is clearly nearer than the reference range `reference`.
+pub fn clearly_nearer(r: f64, reference: f64) -> bool {
+    reference - r > (0.2 * reference).max(0.3)
+}
+
+/// The classifier inputs for one frame pair.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Features {
+    /// Fraction of the bins whose envelope point is a plane inlier within [`RANGE_M`].
+    pub near_frac: f64,
+    /// Number of planes (0, 1, 2).
+    pub planes: f64,
+    /// Angle between the two planes, degrees in [0, 90] (0 with fewer than two).
+    pub pair_angle_deg: f64,
+    /// The larger angle of the planes to the heading, degrees in [0, 90]: ~0 in a corridor,
+    /// ~90 facing a wall (90 without planes).
+    pub side_angle_deg: f64,
+    /// 1 when two planes lie on opposite sides of the heading (a corridor), else 0.
+    pub opposite: f64,
+    /// Range along the heading to the plane most across it, ignoring gaps, m (capped at
+    /// [`OPEN_AHEAD_MAX_M`], also the value when no plane crosses the heading).
+    pub front_m: f64,
+    /// Range along the heading to the first surface actually there (planes, with their gaps,
+    /// and the envelope of the centre bins), m, capped at [`OPEN_AHEAD_MAX_M`].
+    pub open_ahead_m: f64,
+    /// Width of the widest gap in a plane that shows a surface clearly beyond the plane (or
+    /// nothing), flanked by the plane's inliers on both sides, m: a door's opening.
+    pub gap_m: f64,
+    /// How far the point where the two planes' lines cross lies outside the planes' seen
+    /// extents, m (the larger of the two; 0 when both reach it): ~0 at a corner, large for a
+    /// door's wall and the room's back wall seen through it. [`OPEN_AHEAD_MAX_M`] with fewer
+    /// than two planes or parallel ones.
+    pub meet_m: f64,
+    /// Forward distance to where the two planes meet, m (`None` when they do not).
+    pub vertex_m: Option<f64>,
+}
+
+/// Where two lines meet (on the floor plan).
+fn intersect(a: &Line, b: &Line) -> Option<[f64; 2]> {
+    let det = a.dir[0] * (-b.dir[1]) - a.dir[1] * (-b.dir[0]);
+    if det.abs() < 1e-6 {
+        return None;
+    }
+    let (dx, dy) = (b.centre[0] - a.centre[0], b.centre[1] - a.centre[1]);
+    let s = (dx * (-b.dir[1]) - dy * (-b.dir[0])) / det;
+    Some([a.centre[0] + s * a.dir[0], a.centre[1] + s * a.dir[1]])
+}
+
 impl Features {
-    /// Computes the features from the horizon profile (8 columns, left image column first,
-    /// i.e. from the robot's left to its right).
-    pub fn from_profile(profile: &[ProfilePoint; 8]) -> Self {
-        let near: Vec<(usize, [f64; 2])> = profile
-            .iter()
-            .enumerate()
-            .filter_map(|(c, p)| p.filter(|p| p[0].hypot(p[1]) <= RANGE_M).map(|p| (c, p)))
-            .collect();
-        let pts: Vec<[f64; 2]> = near.iter().map(|(_, p)| *p).collect();
-        let open_ahead_m = [3, 4]
-            .iter()
-            .filter_map(|&c| profile[c].map(|p| p[0]))
-            .fold(OPEN_AHEAD_MAX_M, f64::min)
-            .clamp(0.0, OPEN_AHEAD_MAX_M);
-        let mean_range = pts.iter().map(|p| p[0].hypot(p[1])).sum::<f64>() / pts.len().max(1) as f64;
-        let line_resid = match fit_line(&pts) {
-            Some((_, _, r)) if pts.len() >= 3 => r / mean_range.max(1e-6),
+    /// Computes the features from the profile bins (left image column first) and their model.
+    pub fn compute(bins: &[Bin], model: &TpoModel) -> Self {
+        let nb = bins.len().max(1) as f64;
+        let near = (0..bins.len())
+            .filter(|&b| model.is_inlier(b) && bins[b].point.is_some_and(|p| range(p) <= RANGE_M))
+            .count();
+        let planes: Vec<&Line> = model.planes().collect();
+        let pair_angle_deg = match planes[..] {
+            [a, b] => angle_between(a.dir, b.dir),
             _ => 0.0,
         };
-        let mut corner_angle_deg = 0.0;
-        let mut best = f64::INFINITY;
-        for k in 2..=pts.len().saturating_sub(2) {
-            if let (Some((_, da, ra)), Some((_, db, rb))) = (fit_line(&pts[..k]), fit_line(&pts[k..])) {
-                let cost = ra * ra * k as f64 + rb * rb * (pts.len() - k) as f64;
-                if cost < best {
-                    best = cost;
-                    corner_angle_deg = angle_between(da, db);
+        let side_angle_deg = planes.iter().map(|l| l.heading_angle_deg()).fold(None, |m: Option<f64>, a| {
+            Some(m.map_or(a, |m| m.max(a)))
+        });
+        let opposite = match planes[..] {
+            [a, b] if a.side() * b.side() < 0.0 => 1.0,
+            _ => 0.0,
+        };
+        // the plane most across the heading, hit on the heading ignoring gaps
+        let front = planes
+            .iter()
+            .filter(|l| l.heading_angle_deg() >= 30.0)
+            .filter_map(|l| l.hit(0.0, 1.0))
+            .min_by(f64::total_cmp);
+        let (gap_m, gap_bearings) = Self::widest_gap(bins, &planes);
+        let heading_in_gap = gap_bearings.is_some_and(|[lo, hi]| lo <= 0.0 && 0.0 <= hi);
+        // through a gap, the next plane behind it (if any)
+        let open_ahead = if heading_in_gap {
+            planes.iter().filter_map(|l| l.hit(0.0, 0.5)).filter(|&t| front.is_none_or(|f| t > f + 0.3)).min_by(f64::total_cmp)
+        } else {
+            model.hit(0.0, 0.5)
+        };
+        let vertex = match planes[..] {
+            [a, b] if pair_angle_deg >= 5.0 => intersect(a, b),
+            _ => None,
+        };
+        let outside = |l: &Line, p: [f64; 2]| {
+            let s = (p[0] - l.centre[0]) * l.dir[0] + (p[1] - l.centre[1]) * l.dir[1];
+            (l.extent[0] - s).max(s - l.extent[1]).max(0.0)
+        };
+        let meet_m = match (vertex, &planes[..]) {
+            (Some(v), [a, b]) => outside(a, v).max(outside(b, v)).min(OPEN_AHEAD_MAX_M),
+            _ => OPEN_AHEAD_MAX_M,
+        };
+        let vertex_m = vertex.map(|p| p[0]).filter(|&x| x > 0.0);
+        let cap = |x: Option<f64>| x.unwrap_or(OPEN_AHEAD_MAX_M).clamp(0.0, OPEN_AHEAD_MAX_M);
+        Self {
+            near_frac: near as f64 / nb,
+            planes: planes.len() as f64,
+            pair_angle_deg,
+            side_angle_deg: side_angle_deg.unwrap_or(90.0),
+            opposite,
+            front_m: cap(front),
+            open_ahead_m: cap(open_ahead),
+            gap_m,
+            meet_m,
+            vertex_m,
+        }
+    }
+
+    /// The widest gap (m) between consecutive inlier bins of one plane where some bin between
+    /// shows a surface clearly beyond the plane and none is nearer than it; and the bearings
+    /// `[right, left]` of the gap's edges.
+    fn widest_gap(bins: &[Bin], planes: &[&Line]) -> (f64, Option<[f64; 2]>) {
+        let mut best = (0.0, None);
+        for l in planes {
+            let idx: Vec<usize> = (0..bins.len()).filter(|&b| l.inliers >> b & 1 == 1).collect();
+            for w in idx.windows(2) {
+                let (i, j) = (w[0], w[1]);
+                if j < i + 2 {
+                    continue;
+                }
+                let mut beyond = false;
+                let mut blocked = false;
+                for bin in &bins[i + 1..j] {
+                    let (Some(p), Some(h)) = (bin.point, l.hit(bin.bearing, 2.0)) else { continue };
+                    let r = range(p);
+                    beyond |= r - h > (0.15 * h).max(0.4);
+                    blocked |= clearly_nearer(r, h);
+                }
+                if !beyond || blocked {
+                    continue;
+                }
+                // the jambs lie between the flanking inliers and their neighbours in the gap
+                let edge = |a: usize, b: usize| 0.5 * (bins[a].bearing + bins[b].bearing);
+                let (ba, bb) = (edge(i, i + 1), edge(j - 1, j));
+                if let (Some(ra), Some(rb)) = (l.hit(ba, 2.0), l.hit(bb, 2.0)) {
+                    let pa = [ra * ba.cos(), ra * ba.sin()];
+                    let pb = [rb * bb.cos(), rb * bb.sin()];
+                    let width = (pa[0] - pb[0]).hypot(pa[1] - pb[1]);
+                    if width > best.0 {
+                        best = (width, Some([ba.min(bb), ba.max(bb)]));
+                    }
                 }
             }
         }
-        let side = |left: bool| {
-            let s: Vec<[f64; 2]> = pts.iter().copied().filter(|p| (p[1] > 0.0) == left).collect();
-            fit_line(&s).map_or(90.0, |(_, d, _)| angle_between(d, [1.0, 0.0]))
-        };
-        let side_angle_deg = side(true).max(side(false));
-        let gap_frac = match (near.first(), near.last()) {
-            (Some(&(c0, a)), Some(&(c1, b))) if c1 >= c0 + 2 => {
-                let inner = c1 - c0 - 1;
-                let beyond = (c0 + 1..c1)
-                    .filter(|&c| match profile[c] {
-                        None => true,
-                        // the point lies beyond the chord a–b (on the far side from the camera)
-                        Some(p) => {
-                            let (ex, ey) = (b[0] - a[0], b[1] - a[1]);
-                            let len = ex.hypot(ey).max(1e-9);
-                            let side = |q: [f64; 2]| (ex * (q[1] - a[1]) - ey * (q[0] - a[0])) / len;
-                            let (cam, pt) = (side([0.0, 0.0]), side(p));
-                            cam * pt < 0.0 && pt.abs() > 0.3
-                        }
-                    })
-                    .count();
-                beyond as f64 / inner as f64
-            }
-            _ => 0.0,
-        };
-        Self { open_ahead_m, near_frac: pts.len() as f64 / 8.0, line_resid, corner_angle_deg, side_angle_deg, gap_frac }
+        best
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bins_on(points: &[[f64; 2]]) -> Vec<Bin> {
+        points.iter().map(|&p| Bin { point: Some(p), bearing: p[1].atan2(p[0]) }).collect()
+    }
+
+    #[test]
+    fn a_frontal_wall_is_one_plane_across_the_heading() {
+        let pts: Vec<[f64; 2]> = (0..16).map(|k| [3.0, 1.4 - k as f64 * 0.19]).collect();
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        assert!(m.lines[0].is_some() && m.lines[1].is_none(), "{m:?}");
+        let f = Features::compute(&bins, &m);
+        assert_eq!(f.planes, 1.0);
+        assert!((f.side_angle_deg - 90.0).abs() < 1e-6 && (f.front_m - 3.0).abs() < 1e-9, "{f:?}");
+        assert_eq!(f.gap_m, 0.0);
+        assert_eq!(f.near_frac, 1.0);
+    }
+
+    #[test]
+    fn a_door_is_a_gap_with_a_surface_behind() {
+        // wall at 3 m with a 1 m opening in the middle showing a back wall at 6 m
+        let pts: Vec<[f64; 2]> = (0..16)
+            .map(|k| {
+                let y = 1.4 - k as f64 * 0.19;
+                if y.abs() < 0.5 { [6.0, y * 2.0] } else { [3.0, y] }
+            })
+            .collect();
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        let f = Features::compute(&bins, &m);
+        assert!((0.8..1.3).contains(&f.gap_m), "{f:?}");
+        assert!(f.open_ahead_m > 5.0 && (f.front_m - 3.0).abs() < 1e-6, "{f:?}");
+    }
+
+    #[test]
+    fn a_corridor_is_two_planes_along_the_heading_on_both_sides() {
+        let mut pts = Vec::new();
+        for k in 0..8 {
+            pts.push([1.5 + k as f64 * 0.5, 1.0]);
+        }
+        for k in 0..8 {
+            pts.push([5.0 - k as f64 * 0.5, -1.0]);
+        }
+        let bins = bins_on(&pts);
+        let f = Features::compute(&bins, &TpoModel::fit(&bins));
+        assert_eq!((f.planes, f.opposite), (2.0, 1.0), "{f:?}");
+        assert!(f.side_angle_deg < 1.0 && f.pair_angle_deg < 1.0 && f.open_ahead_m == OPEN_AHEAD_MAX_M, "{f:?}");
+    }
+
+    #[test]
+    fn a_narrow_object_is_not_a_plane_and_is_an_obstacle_reference() {
+        // a 0.4 m box face 1.5 m ahead and nothing else: no plane, obstacle reference infinite
+        let bins = bins_on(&[[1.5, 0.2], [1.5, 0.07], [1.5, -0.07], [1.5, -0.2]]);
+        let m = TpoModel::fit(&bins);
+        assert!(m.lines[0].is_none());
+        assert_eq!(m.expected_range(&bins, 1), f64::INFINITY);
+        // in front of a wall at 3 m the reference is the wall
+        let mut pts: Vec<[f64; 2]> = (0..16).map(|k| [3.0, 1.4 - k as f64 * 0.19]).collect();
+        pts[7] = [1.5, 0.02];
+        pts[8] = [1.5, -0.03];
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        assert!(!m.is_inlier(7) && m.is_inlier(6));
+        assert!((m.expected_range(&bins, 7) - 3.0).abs() < 0.01);
+        assert!(clearly_nearer(1.5, m.expected_range(&bins, 7)));
+        assert!(!clearly_nearer(2.8, 3.0));
     }
 }

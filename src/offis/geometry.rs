@@ -170,11 +170,22 @@ pub struct DepthParams {
     pub max_depth_m: f64,
     /// Located points lower than this above the floor (m) are floor, never an obstacle.
     pub floor_height_m: f64,
+    /// The envelope profile, the plane fit and the obstacle decision use only blocks whose
+    /// radial flow is at least this (pixels): with block-matching noise of ~0.1 px, depth is
+    /// then good to ~30 %; below it, far floor near the horizon can pass for a near wall.
+    /// They must also point away from the focus of expansion: the component across the radial
+    /// direction at most half the radial one (random matches on noise, e.g. a bright sky, and
+    /// aperture errors along stretched floor texture fail it).
+    pub reliable_radial_px: f64,
+    /// For the profile and the obstacle decision, blocks lower than `floor_rel · camera height`
+    /// above the floor count as floor too: a floor block whose depth is off by a fraction `e`
+    /// appears `e · camera height` above the floor, whatever its distance.
+    pub floor_rel: f64,
 }
 
 impl Default for DepthParams {
     fn default() -> Self {
-        Self { min_speed_m_s: 0.02, min_radius_frac: 0.02, min_radial_px: 0.05, max_depth_m: 30.0, floor_height_m: 0.1 }
+        Self { min_speed_m_s: 0.02, min_radius_frac: 0.02, min_radial_px: 0.05, max_depth_m: 30.0, floor_height_m: 0.1, reliable_radial_px: 0.3, floor_rel: 0.6 }
     }
 }
 
@@ -185,6 +196,11 @@ pub struct Located {
     pub forward: f64,
     pub left: f64,
     pub up: f64,
+    /// The radial (translational) flow it was located from, pixels per frame interval, and
+    /// the size of the de-rotated flow's component across the radial direction (0 for a
+    /// perfect measurement of a static point).
+    pub radial_px: f64,
+    pub tangential_px: f64,
 }
 
 impl Located {
@@ -229,5 +245,6 @@ pub fn locate(
     let ray = cam.ray(x + ut, y + vt);
     let in_b = mat_t_vec(&motion.rot, ray.map(|k| k * depth));
     let robot = mat_vec(&robot_from_optical(cam.pitch_rad), in_b);
-    Some(Located { forward: robot[0], left: robot[1], up: robot[2] })
+    let tangential = ((ut * ry - vt * rx) / r).abs();
+    Some(Located { forward: robot[0], left: robot[1], up: robot[2], radial_px: radial, tangential_px: tangential })
 }

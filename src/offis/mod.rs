@@ -14,10 +14,14 @@
 //! | rough and fine structure masks | §4.1–4.2, eq. 11–12 | [`structure`] |
 //! | obstacle zoom-in, layer 1 → 3 | §3.1, Fig. 6 | [`quadrants::zoom_in`] |
 //! | distance from flow and velocity (τ = r/ṙ, Z = t_z·τ) | §2.2 | [`geometry::locate`] |
-//! | classifier features (horizon profile, fits) | §5 | [`features`] |
+//! | envelope profile, plane fit, classifier features | §5 | [`features`] |
+//! | obstacle: blocks clearly nearer than the TPO planes, then Fig. 6 on them | §3.1 | [`Offis::step`] |
+//! | rough + three fine classifiers, TPO decision by maximum | §5, Fig. 11–13 | [`classify`] |
 //!
 //! The step is pure and deterministic: no clock, no I/O; its buffers are reused between frames.
 
+pub mod bench;
+pub mod classify;
 pub mod features;
 pub mod geometry;
 pub mod planes;
@@ -26,16 +30,19 @@ pub mod structure;
 pub mod synth;
 
 use crate::flow::FlowField;
-use crate::perception::{Obstacle, Perception, Tpo};
-use features::{Features, ProfilePoint};
+use crate::perception::{Obstacle, Perception, Tpo, TpoShape};
+pub use classify::{ClassifyError, Decision};
+use classify::Classifier;
+use features::{Bin, Features, TpoModel};
 use geometry::{DepthParams, FrameMotion, Located, PinholeCamera};
 use hal::{BodyVelocity, Calibration};
 use planes::{PlaneTolerance, TiltParams};
 use quadrants::{Grid, OutlierParams, Quadrants, Zoom};
 use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
 
 /// Why a step could not run; each names the input and what to do.
-#[derive(Debug, thiserror::Error, PartialEq)]
+#[derive(Debug, thiserror::Error)]
 pub enum OffisError {
     #[error(
         "flow grid {rows}×{cols} cannot be segmented: OFFIS needs rows and cols that are positive multiples of 8 (set flow.rows/flow.cols, e.g. 16)"
@@ -49,13 +56,20 @@ pub enum OffisError {
     Dt(f64),
     #[error("odometry v = {v} m/s, omega = {omega} rad/s must be finite")]
     Odometry { v: f64, omega: f64 },
+    #[error("{0}")]
+    Classify(ClassifyError),
 }
 
 /// OFFIS parameters: the `[offis]` table of the config file (sub-tables `[offis.outlier]`,
-/// `[offis.plane]`, `[offis.tilt]`, `[offis.depth]`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+/// `[offis.plane]`, `[offis.tilt]`, `[offis.depth]`, and `rules_dir`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct OffisParams {
+    /// Folder with the situation classifiers' rule bases (`rough.toml`, `fine_flat.toml`,
+    /// `fine_bent.toml`, `fine_empty.toml`); unset = the copies of `rules/offis/` built into
+    /// the binary.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rules_dir: Option<PathBuf>,
     pub outlier: OutlierParams,
     pub plane: PlaneTolerance,
     pub tilt: TiltParams,
@@ -67,7 +81,7 @@ impl OffisParams {
     pub fn check(&self) -> Result<(), (String, String)> {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
-        let checks: [(&str, bool, &str); 12] = [
+        let checks: [(&str, bool, &str); 14] = [
             ("outlier.k_median", pos(self.outlier.k_median), "must be a positive number (typ. 2..5)"),
             ("outlier.floor_px", nonneg(self.outlier.floor_px), "must be ≥ 0 pixels"),
             ("outlier.min_support", self.outlier.min_support <= 8, "must be in 0..=8 neighbours"),
@@ -88,6 +102,8 @@ impl OffisParams {
                 pos(self.depth.max_depth_m) && nonneg(self.depth.floor_height_m),
                 "must be a positive distance (and depth.floor_height_m ≥ 0)",
             ),
+            ("depth.reliable_radial_px", nonneg(self.depth.reliable_radial_px), "must be ≥ 0 pixels"),
+            ("depth.floor_rel", nonneg(self.depth.floor_rel) && self.depth.floor_rel < 1.0, "must be in [0, 1)"),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err((format!("offis.{field}"), problem.to_string())),
@@ -112,7 +128,7 @@ pub struct Attributes {
     /// §4.1–4.2.
     pub rough: [[u8; 4]; 4],
     pub fine: [[u8; 8]; 8],
-    /// §3.1, Fig. 6, on the inliers that are not floor (when translating).
+    /// §3.1, Fig. 6, paper-literal on the inliers that are not floor (when translating).
     pub zoom: Option<Zoom>,
     /// Valid vectors in, outliers removed (§2.3).
     pub valid: usize,
@@ -123,31 +139,62 @@ pub struct Attributes {
     /// blocks, m (`None`: not translating, or no block measurable).
     pub forward_l3: [[Option<f64>; 8]; 8],
     pub range_l3: [[Option<f64>; 8]; 8],
-    /// Per layer-3 column, the median located point (forward, left) near the horizon ([`features`]).
-    pub profile: [ProfilePoint; 8],
+    /// The envelope profile, left image column first ([`features`]).
+    pub bins: Vec<Bin>,
+    /// The TPO's planes fitted to it.
+    pub model: TpoModel,
     /// The classifier inputs.
     pub features: Features,
+    /// The classifiers' degrees and the TPO decision (default when not translating).
+    pub decision: Decision,
+    /// Blocks found clearly nearer than the TPO planes, and those of the reported obstacle.
+    pub obstacle_blocks: usize,
+    pub obstacle_cluster: usize,
 }
 
-/// The OFFIS stage: its parameters and the buffers it reuses from frame to frame.
-#[derive(Clone, Debug, Default)]
+/// The OFFIS stage: its parameters, the classifiers and the buffers it reuses from frame to frame.
+#[derive(Clone, Debug)]
 pub struct Offis {
     params: OffisParams,
+    classifier: Classifier,
     u: Vec<f64>,
     v: Vec<f64>,
     valid: Vec<bool>,
     inlier: Vec<bool>,
-    /// Inliers that are not floor: the blocks the obstacle zoom-in looks at.
+    /// Inliers that are not floor: the blocks the paper's zoom-in looks at.
     candidate: Vec<bool>,
     located: Vec<Option<Located>>,
+    /// Blocks clearly nearer than the TPO (obstacle blocks), and the cluster label of each.
+    near: Vec<bool>,
+    label: Vec<u32>,
+    stack: Vec<usize>,
+    picks: Vec<(f64, [f64; 2])>,
     scratch: Vec<f64>,
     scratch2: Vec<f64>,
     attributes: Attributes,
 }
 
 impl Offis {
-    pub fn new(params: OffisParams) -> Self {
-        Self { params, ..Self::default() }
+    /// OFFIS with the situation classifiers from `params.rules_dir`, or the built-in ones.
+    pub fn new(params: OffisParams) -> Result<Self, ClassifyError> {
+        let classifier = Classifier::load(params.rules_dir.as_deref())?;
+        Ok(Self {
+            params,
+            classifier,
+            u: Vec::new(),
+            v: Vec::new(),
+            valid: Vec::new(),
+            inlier: Vec::new(),
+            candidate: Vec::new(),
+            located: Vec::new(),
+            near: Vec::new(),
+            label: Vec::new(),
+            stack: Vec::new(),
+            picks: Vec::new(),
+            scratch: Vec::new(),
+            scratch2: Vec::new(),
+            attributes: Attributes::default(),
+        })
     }
 
     pub fn params(&self) -> &OffisParams {
@@ -182,7 +229,8 @@ impl Offis {
         if !(odo.v.is_finite() && odo.omega.is_finite()) {
             return Err(OffisError::Odometry { v: odo.v, omega: odo.omega });
         }
-        let p = self.params;
+        let (outlier_p, plane_p, tilt_p, depth_p) =
+            (self.params.outlier, self.params.plane, self.params.tilt, self.params.depth);
         let cam = PinholeCamera::new(calib, flow.width, flow.height);
         let motion = FrameMotion::from_odometry(&cam, odo, dt);
         let n = grid.len();
@@ -205,34 +253,32 @@ impl Offis {
             &self.u,
             &self.v,
             &self.valid,
-            &p.outlier,
+            &outlier_p,
             &mut self.inlier,
             &mut self.scratch,
         );
         let q = Quadrants::compute(grid, &self.u, &self.v, &self.inlier);
         // Eq. (2)–(10), §4.1–4.2, Fig. 6.
-        let vplane_l2 = planes::vplane_l2(&q.l2, &p.plane);
-        let hplane_l2 = planes::hplane_l2(&q.l2, &p.plane);
-        let vplane_l3 = planes::vplane_l3(&q.l3, &p.plane);
-        let hplane_l3 = planes::hplane_l3(&q.l3, &p.plane);
+        let vplane_l2 = planes::vplane_l2(&q.l2, &plane_p);
+        let hplane_l2 = planes::hplane_l2(&q.l2, &plane_p);
+        let vplane_l3 = planes::vplane_l3(&q.l3, &plane_p);
+        let hplane_l3 = planes::hplane_l3(&q.l3, &plane_p);
         let rough = structure::rough_mask(&q.l2, &vplane_l2, &hplane_l2);
         let fine = structure::fine_mask(&q.l3, &vplane_l3, &hplane_l3, &rough);
 
         // Distances (§2.2): only while translating.
-        let translating = odo.v.abs() >= p.depth.min_speed_m_s;
+        let translating = odo.v.abs() >= depth_p.min_speed_m_s;
         let foe = motion.foe(&cam).filter(|_| translating);
         for (i, f) in flow.vectors.iter().enumerate() {
             self.located[i] = match foe {
                 Some(e) if self.inlier[i] => {
-                    geometry::locate(&cam, &motion, e, &p.depth, [f.x as f64, f.y as f64], [self.u[i], self.v[i]])
+                    geometry::locate(&cam, &motion, e, &depth_p, [f.x as f64, f.y as f64], [self.u[i], self.v[i]])
                 }
                 _ => None,
             };
         }
-        // Fig. 6 zoom-in, on the blocks that are not floor: the floor's flow near the bottom
-        // corners is always the biggest in view, and the floor is not an obstacle. Without
-        // translation the floor cannot be told apart and every inlier takes part (paper-literal).
-        let floor_m = p.depth.floor_height_m;
+        // The paper's Fig. 6 zoom-in, on the blocks that are not floor (logged as an attribute).
+        let floor_m = depth_p.floor_height_m;
         let z_m = cam.mount_m[2];
         self.candidate.resize(n, false);
         for (i, keep) in self.candidate.iter_mut().enumerate() {
@@ -250,35 +296,108 @@ impl Offis {
             }
         }
 
-        let mut profile = [None; 8];
+        // §5: envelope profile, plane fit, features, classifiers.
+        let mut bins = std::mem::take(&mut self.attributes.bins);
+        bins.clear();
+        let nb = grid.cols.min(features::MAX_BINS);
+        let reliable = depth_p.reliable_radial_px;
+        // the floor test, relative: a floor block whose depth is off by a fraction e appears
+        // e·z_m above the floor, so anything below floor_rel·z_m may still be floor
+        let floor_rel_m = floor_m.max(depth_p.floor_rel * z_m);
+        // the profile takes blocks whose flow is clearly radial; the obstacle decision tolerates more tangential flow,
+        // as blocks on an obstacle's outline mix its flow with the background's
+        let usable = |l: &Located, across: f64| {
+            l.up + z_m >= floor_rel_m
+                && l.up + z_m <= features::TOP_M
+                && l.radial_px >= reliable
+                && l.tangential_px <= across * l.radial_px
+        };
+        let eligible = |l: &Located| usable(l, 0.5);
+        // the profile looks at the planes from about the camera's height up (walls reach the
+        // ceiling, the floor never gets there, even with a grossly wrong depth)
+        let profile_min_m = features::PROFILE_MIN_REL * z_m;
         if foe.is_some() {
-            // the band of rows around the horizon, where the TPO definitions probe the planes
-            let horizon = cam.cy - cam.fy * cam.pitch_rad.tan();
-            let band = (horizon - 0.2 * cam.fy)..=(horizon + 0.05 * cam.fy);
-            for (c, point) in profile.iter_mut().enumerate() {
-                *point = self.column_point(flow, grid, c, &band);
+            for b in 0..nb {
+                let (c0, c1) = (b * grid.cols / nb, (b + 1) * grid.cols / nb);
+                let x = 0.5 * (flow.at(0, c0).x as f64 + flow.at(0, c1 - 1).x as f64);
+                self.picks.clear();
+                for r in 0..grid.rows {
+                    for c in c0..c1 {
+                        if let Some(l) =
+                            self.located[r * grid.cols + c].filter(|l| eligible(l) && l.up + z_m >= profile_min_m)
+                        {
+                            self.picks.push((l.range(), [l.forward, l.left]));
+                        }
+                    }
+                }
+                self.picks.sort_by(|a, b| a.0.total_cmp(&b.0));
+                let point = (!self.picks.is_empty()).then(|| self.picks[(self.picks.len() * 3) / 4].1);
+                let horizon = cam.cy - cam.fy * cam.pitch_rad.tan();
+                bins.push(Bin { point, bearing: cam.bearing(x, horizon) - motion.yaw });
             }
         }
-        let features = Features::from_profile(&profile);
+        let model = TpoModel::fit(&bins);
+        let features = Features::compute(&bins, &model);
+        let decision = if foe.is_some() {
+            self.classifier.classify(&features).map_err(OffisError::Classify)?
+        } else {
+            Decision::default()
+        };
 
-        let obstacle = match zoom {
-            Some(z) => {
-                let [r, c] = z.l3;
-                let (x, y) = cell_centre(flow, grid, [r, c]);
-                Obstacle {
-                    present: range_l3[r][c].is_none_or(|d| d <= features::RANGE_M),
-                    distance_m: range_l3[r][c],
-                    bearing_rad: Some(cam.bearing(x, y) - motion.yaw),
-                    cell: Some(z.l3),
+        // The obstacle: blocks clearly nearer than the TPO's surface in their bin, grouped into
+        // 8-connected clusters; the nearest sizeable cluster, its cell by Fig. 6 on its blocks.
+        self.near.clear();
+        self.near.resize(n, false);
+        let mut obstacle_blocks = 0;
+        if foe.is_some() {
+            for b in 0..nb {
+                let reference = model.expected_range(&bins, b);
+                let (c0, c1) = (b * grid.cols / nb, (b + 1) * grid.cols / nb);
+                for r in 0..grid.rows {
+                    for c in c0..c1 {
+                        let i = r * grid.cols + c;
+                        if let Some(l) = self.located[i].filter(|l| usable(l, 1.0)) {
+                            let d = l.range();
+                            if d <= features::RANGE_M && features::clearly_nearer(d, reference) {
+                                self.near[i] = true;
+                                obstacle_blocks += 1;
+                            }
+                        }
+                    }
                 }
             }
-            None => Obstacle::default(),
+        }
+        let min_blocks = (3 * n).div_ceil(256).max(3);
+        let cluster = self.nearest_cluster(grid, min_blocks);
+        let (obstacle, obstacle_cluster) = match cluster {
+            Some((label, size, distance, bearing)) => {
+                for (k, m) in self.candidate.iter_mut().enumerate() {
+                    *m = self.label[k] == label;
+                }
+                let cell = quadrants::zoom_in(&Quadrants::compute(grid, &self.u, &self.v, &self.candidate)).map(|z| z.l3);
+                let o = Obstacle { present: true, distance_m: Some(distance), bearing_rad: Some(bearing), cell };
+                (o, size)
+            }
+            None => (Obstacle::default(), 0),
         };
-        let tpo_distance = (0..64)
-            .map(|k| (k / 8, k % 8))
-            .filter(|&(r, c)| fine[r][c] == 1 && zoom.is_none_or(|z| z.l3 != [r, c]))
-            .filter_map(|(r, c)| forward_l3[r][c])
-            .min_by(f64::total_cmp);
+
+        let tpo_distance = match decision.shape {
+            TpoShape::Wall | TpoShape::Door => model.planes().filter(|l| l.heading_angle_deg() >= 30.0).filter_map(|l| l.hit(0.0, 1.0)).min_by(f64::total_cmp),
+            TpoShape::Corner => features.vertex_m.or_else(|| model.hit(0.0, 1.0)),
+            TpoShape::Corridor => {
+                // the nearest visible point of the side walls: where the image edge on each
+                // wall's side meets it
+                let edges = [cam.bearing(0.0, cam.cy), cam.bearing(flow.width as f64 - 1.0, cam.cy)];
+                model
+                    .planes()
+                    .filter_map(|l| {
+                        let e = if l.side() > 0.0 { edges[0] } else { edges[1] } - motion.yaw;
+                        l.hit(e, 50.0).map(|t| t * e.cos())
+                    })
+                    .min_by(f64::total_cmp)
+            }
+            TpoShape::None => None,
+        };
 
         self.attributes = Attributes {
             quadrants: q,
@@ -286,8 +405,8 @@ impl Offis {
             hplane_l2,
             vplane_l3,
             hplane_l3,
-            tilt_l2: planes::tilt_l2(&q.l2, &p.tilt),
-            tilt_l3: planes::tilt_l3(&q.l3, &p.tilt),
+            tilt_l2: planes::tilt_l2(&q.l2, &tilt_p),
+            tilt_l3: planes::tilt_l3(&q.l3, &tilt_p),
             rough,
             fine,
             zoom,
@@ -296,10 +415,69 @@ impl Offis {
             foe,
             forward_l3,
             range_l3,
-            profile,
+            bins,
+            model,
             features,
+            decision,
+            obstacle_blocks,
+            obstacle_cluster,
         };
-        Ok(Perception { tpo: Tpo { distance_m: tpo_distance, ..Tpo::default() }, obstacle, rough, fine })
+        let tpo = Tpo { shape: decision.shape, confidence: decision.confidence, distance_m: tpo_distance };
+        Ok(Perception { tpo, obstacle, rough, fine })
+    }
+
+    /// Labels the 8-connected clusters of obstacle blocks (`self.near`) and returns the nearest
+    /// one with at least `min_blocks` blocks: `(label, size, distance, bearing)`, where the
+    /// distance is the lower quartile of its blocks' horizontal ranges (its nearest face, robust
+    /// to a stray block) and the bearing the median of their bearings.
+    fn nearest_cluster(&mut self, grid: Grid, min_blocks: usize) -> Option<(u32, usize, f64, f64)> {
+        let n = grid.len();
+        self.label.clear();
+        self.label.resize(n, 0);
+        let mut next = 0u32;
+        let mut best: Option<(u32, usize, f64, f64)> = None;
+        for start in 0..n {
+            if !self.near[start] || self.label[start] != 0 {
+                continue;
+            }
+            next += 1;
+            self.label[start] = next;
+            self.stack.clear();
+            self.stack.push(start);
+            self.scratch.clear();
+            self.scratch2.clear();
+            while let Some(i) = self.stack.pop() {
+                if let Some(l) = self.located[i] {
+                    self.scratch.push(l.range());
+                    self.scratch2.push(l.bearing());
+                }
+                let (r, c) = ((i / grid.cols) as isize, (i % grid.cols) as isize);
+                for dr in -1..=1 {
+                    for dc in -1..=1 {
+                        let (rr, cc) = (r + dr, c + dc);
+                        if rr < 0 || cc < 0 || rr >= grid.rows as isize || cc >= grid.cols as isize {
+                            continue;
+                        }
+                        let j = rr as usize * grid.cols + cc as usize;
+                        if self.near[j] && self.label[j] == 0 {
+                            self.label[j] = next;
+                            self.stack.push(j);
+                        }
+                    }
+                }
+            }
+            let size = self.scratch.len();
+            if size < min_blocks {
+                continue;
+            }
+            self.scratch.sort_by(f64::total_cmp);
+            let distance = self.scratch[(size - 1) / 4];
+            let bearing = quadrants::median(&mut self.scratch2).unwrap_or(0.0);
+            if best.is_none_or(|(_, _, d, _)| distance < d) {
+                best = Some((next, size, distance, bearing));
+            }
+        }
+        best
     }
 
     /// Median of `f` over the located blocks of layer-3 cell `[r, c]`.
@@ -315,47 +493,6 @@ impl Offis {
         }
         quadrants::median(&mut self.scratch)
     }
-}
-
-impl Offis {
-    /// The median (forward, left) of the located blocks of layer-3 column `c` whose centre row
-    /// lies in `band` (pixels).
-    fn column_point(
-        &mut self,
-        flow: &FlowField,
-        grid: Grid,
-        c: usize,
-        band: &std::ops::RangeInclusive<f64>,
-    ) -> ProfilePoint {
-        let w = grid.cols / 8;
-        self.scratch.clear();
-        self.scratch2.clear();
-        for br in 0..grid.rows {
-            for bc in c * w..(c + 1) * w {
-                let i = br * grid.cols + bc;
-                if let Some(l) = self.located[i].filter(|_| band.contains(&(flow.vectors[i].y as f64))) {
-                    self.scratch.push(l.forward);
-                    self.scratch2.push(l.left);
-                }
-            }
-        }
-        Some([quadrants::median(&mut self.scratch)?, quadrants::median(&mut self.scratch2)?])
-    }
-}
-
-/// The pixel centre of layer-3 cell `[r, c]`: the mean of its block centres.
-fn cell_centre(flow: &FlowField, grid: Grid, [r, c]: [usize; 2]) -> (f64, f64) {
-    let (h, w) = (grid.rows / 8, grid.cols / 8);
-    let (mut x, mut y) = (0.0, 0.0);
-    for br in r * h..(r + 1) * h {
-        for bc in c * w..(c + 1) * w {
-            let f = flow.at(br, bc);
-            x += f.x as f64;
-            y += f.y as f64;
-        }
-    }
-    let k = (h * w) as f64;
-    (x / k, y / k)
 }
 
 #[cfg(test)]

@@ -46,7 +46,7 @@ fn corridor_with_box() -> Scene {
 
 fn run(scene: &Scene, c: &Calibration, rows: usize, cols: usize, vel: BodyVelocity) -> (Perception, Attributes) {
     let pair = scene.flow(c, rows, cols, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let p = offis.step(&pair.field, vel, DT, c).unwrap();
     (p, offis.attributes().clone())
 }
@@ -160,29 +160,29 @@ fn eq_12_corridor_with_obstacle_fine_mask() {
 }
 
 #[test]
-fn obstacle_zoom_distance_and_bearing() {
-    // A wall 4 m ahead and a box face 1.5 m ahead, right of centre and low: the zoom-in lands in
-    // the box, and its distance and bearing are the ray-cast truth.
+fn an_obstacle_is_what_stands_clearly_in_front_of_the_tpo() {
+    // A wall 4 m ahead and a box face 1.6 m ahead on the right: the box is the obstacle, with
+    // its distance and bearing; the wall alone is no obstacle (it is the TPO, a wall).
     let c = calib(0.0);
-    let scene =
-        Scene { rects: vec![Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.6, [-0.6, -0.2], [-1.0, 0.8])] };
     let vel = BodyVelocity::new(0.5, 0.1);
-    let pair = scene.flow(&c, 16, 16, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
-    let p = offis.step(&pair.field, vel, DT, &c).unwrap();
-    let [r, col] = p.obstacle.cell.unwrap();
-    assert!(p.obstacle.present);
-    // the four blocks of that cell: truth range median and centre bearing at frame B
-    let mut ranges: Vec<f64> =
-        (0..4).map(|k| pair.truth[(2 * r + k / 2) * 16 + 2 * col + k % 2].unwrap()).map(|t| t[0].hypot(t[1])).collect();
-    ranges.sort_by(f64::total_cmp);
-    let want_range = 0.5 * (ranges[1] + ranges[2]);
-    assert!(want_range < 1.7, "the cell is on the box: {want_range} (cell {r},{col})");
-    assert!((p.obstacle.distance_m.unwrap() - want_range).abs() < 2e-3, "{:?} vs {want_range}", p.obstacle);
-    let cx = (0..4).map(|k| pair.field.at(2 * r + k / 2, 2 * col + k % 2).x as f64).sum::<f64>() / 4.0;
-    let want_bearing = -((cx - 639.5) / 1272.0).atan() - 0.1 * DT;
-    assert!((p.obstacle.bearing_rad.unwrap() - want_bearing).abs() < 1e-9);
-    assert!(want_bearing < 0.0, "the box is right of the heading");
+    let wall_only = Scene { rects: vec![Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::floor()] };
+    let (p, _) = run(&wall_only, &c, 16, 16, vel);
+    assert!(!p.obstacle.present && p.obstacle.cell.is_none(), "{:?}", p.obstacle);
+    assert_eq!(p.tpo.shape, TpoShape::Wall, "{:?}", p.tpo);
+    assert!((p.tpo.distance_m.unwrap() - 3.85).abs() < 0.02, "{:?}", p.tpo);
+    let scene = Scene {
+        rects: vec![Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.6, [-0.6, -0.2], [0.0, 1.3]), Rect::floor()],
+    };
+    let (p, a) = run(&scene, &c, 16, 16, vel);
+    assert!(p.obstacle.present, "{:?} {:?}", p.obstacle, a.features);
+    // the box face is 1.45 m ahead of the camera at frame B, 0.2–0.6 m to the right
+    let d = p.obstacle.distance_m.unwrap();
+    assert!((1.45..1.6).contains(&d), "{d}");
+    let b = p.obstacle.bearing_rad.unwrap().to_degrees();
+    assert!((-22.0..-7.0).contains(&b), "{b}");
+    let [_, col] = p.obstacle.cell.unwrap();
+    assert!(col >= 4, "right half of the image: {:?}", p.obstacle.cell);
+    assert_eq!(p.tpo.shape, TpoShape::Wall, "the box does not change the TPO: {:?}", a.features);
 }
 
 #[test]
@@ -218,7 +218,7 @@ fn calibration_is_scaled_to_the_flow_size() {
     };
     let vel = BodyVelocity::new(0.5, 0.0);
     let pair = wall().flow(&small, 16, 16, vel, DT);
-    let p = Offis::new(OffisParams::default()).step(&pair.field, vel, DT, &c).unwrap();
+    let p = Offis::new(OffisParams::default()).unwrap().step(&pair.field, vel, DT, &c).unwrap();
     assert!((p.tpo.distance_m.unwrap() - 1.95).abs() < 1e-3);
 }
 
@@ -231,7 +231,7 @@ fn invalid_vectors_and_bad_inputs() {
         f.validity = crate::flow::Validity::Textureless;
         f.u = 1e6;
     }
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let p = offis.step(&pair.field, vel, DT, &c).unwrap();
     assert_eq!(offis.attributes().valid, 256 - 86);
     assert_eq!(p.rough, [[1; 4]; 4], "invalid vectors do not enter the averages");
@@ -256,64 +256,73 @@ fn the_step_is_deterministic_and_reuses_its_buffers() {
     let vel = BodyVelocity::new(0.5, 0.1);
     let a = corridor_with_box().flow(&c, 16, 16, vel, DT);
     let b = door().flow(&c, 24, 24, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let first = offis.step(&a.field, vel, DT, &c).unwrap();
     offis.step(&b.field, vel, DT, &c).unwrap();
     assert_eq!(offis.step(&a.field, vel, DT, &c).unwrap(), first);
 }
 
-fn features(scene: &Scene) -> features::Features {
+fn classify(scene: &Scene) -> (Tpo, features::Features) {
     let c = Calibration::nominal_c310();
     let vel = BodyVelocity::new(0.5, 0.0);
     let pair = scene.flow(&c, 16, 16, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
-    offis.step(&pair.field, vel, DT, &c).unwrap();
-    offis.attributes().features
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
+    let p = offis.step(&pair.field, vel, DT, &c).unwrap();
+    (p.tpo, offis.attributes().features)
 }
 
 #[test]
-fn features_separate_the_four_shapes() {
+fn the_classifiers_tell_the_four_shapes_apart() {
     let floor = Rect::floor();
-    let wall = features(&Scene { rects: vec![Rect::frontal(2.6, [-10.0, 10.0], Z), floor] });
-    assert!(wall.line_resid < 0.01 && wall.corner_angle_deg < 5.0, "{wall:?}");
-    assert!((wall.open_ahead_m - 2.45).abs() < 0.01 && wall.near_frac == 1.0, "{wall:?}");
+    let (wall, f) = classify(&Scene { rects: vec![Rect::frontal(2.6, [-10.0, 10.0], Z), floor] });
+    assert_eq!((wall.shape, f.planes), (TpoShape::Wall, 1.0), "{f:?}");
+    assert!((wall.distance_m.unwrap() - 2.45).abs() < 0.02 && wall.confidence > 0.9, "{wall:?}");
     // a concave corner: two walls at ±45° meeting 3 m ahead
-    let corner = features(&Scene {
+    let (corner, f) = classify(&Scene {
         rects: vec![
             Rect::vertical(3.1, 0.0, std::f64::consts::FRAC_PI_4, [-10.0, 0.0, -10.0], [10.0, 10.0, 10.0]),
             Rect::vertical(3.1, 0.0, -std::f64::consts::FRAC_PI_4, [-10.0, -10.0, -10.0], [10.0, 0.0, 10.0]),
             floor,
         ],
     });
-    assert!(corner.corner_angle_deg > 70.0 && corner.line_resid > 0.05, "{corner:?}");
-    let corridor =
-        features(&Scene { rects: vec![Rect::side(1.0, [0.0, 60.0], Z), Rect::side(-1.0, [0.0, 60.0], Z), floor] });
-    assert!(corridor.side_angle_deg < 5.0 && corridor.open_ahead_m >= 7.9, "{corridor:?}");
-    let door = features(&Scene {
-        rects: vec![Rect::frontal(2.6, [0.5, 10.0], Z), Rect::frontal(2.6, [-10.0, -0.5], Z), floor],
+    assert_eq!(corner.shape, TpoShape::Corner, "{f:?}");
+    assert!(f.pair_angle_deg > 80.0 && (corner.distance_m.unwrap() - 2.95).abs() < 0.1, "{corner:?} {f:?}");
+    let (corridor, f) =
+        classify(&Scene { rects: vec![Rect::side(1.0, [0.0, 60.0], Z), Rect::side(-1.0, [0.0, 60.0], Z), floor] });
+    assert_eq!(corridor.shape, TpoShape::Corridor, "{f:?}");
+    assert!(f.side_angle_deg < 5.0 && f.open_ahead_m >= 7.9, "{f:?}");
+    let (door, f) = classify(&Scene {
+        rects: vec![
+            Rect::frontal(2.6, [0.5, 10.0], Z),
+            Rect::frontal(2.6, [-10.0, -0.5], Z),
+            Rect::frontal(5.6, [-10.0, 10.0], Z),
+            floor,
+        ],
     });
-    assert!(door.gap_frac > 0.25 && door.open_ahead_m >= 7.9 && door.side_angle_deg > 80.0, "{door:?}");
-    // the opening alone does not make a door (a corridor or a concave corner is open behind the
-    // chord too): its flanks are one plane, which neither a corner nor a corridor has
-    assert!(door.corner_angle_deg < 5.0 && door.line_resid < 0.01, "{door:?}");
-    assert!(wall.gap_frac == 0.0, "{wall:?}");
+    assert_eq!(door.shape, TpoShape::Door, "{f:?}");
+    assert!((0.7..1.4).contains(&f.gap_m) && (door.distance_m.unwrap() - 2.45).abs() < 0.02, "{door:?} {f:?}");
+    let (none, f) = classify(&Scene { rects: vec![floor] });
+    assert_eq!((none.shape, none.distance_m), (TpoShape::None, None), "{f:?}");
 }
 
 #[test]
 fn the_floor_is_never_the_obstacle() {
     // Level C310 0.4 m above the floor, a wall 4 m ahead and a box 1.8 m ahead on the right:
-    // the floor's flow at the bottom corners is the biggest, but the zoom-in lands on the box.
+    // the floor's flow at the bottom corners is the biggest, but the obstacle is the box.
     let c = Calibration::nominal_c310();
     let scene = Scene {
-        rects: vec![Rect::floor(), Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.9, [-0.7, -0.2], [0.0, 0.8])],
+        rects: vec![Rect::floor(), Rect::frontal(4.0, [-10.0, 10.0], Z), Rect::frontal(1.9, [-0.7, -0.2], [0.0, 0.6])],
     };
     let vel = BodyVelocity::new(0.5, 0.0);
     let pair = scene.flow(&c, 16, 16, vel, DT);
-    let mut offis = Offis::new(OffisParams::default());
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
     let p = offis.step(&pair.field, vel, DT, &c).unwrap();
     let [r, col] = p.obstacle.cell.unwrap();
     let t = pair.truth[(2 * r) * 16 + 2 * col].unwrap();
     assert!(t[2] + 0.4 > 0.1, "block on the box, not the floor: {t:?} cell {r},{col}");
-    assert!(p.obstacle.present && (p.obstacle.distance_m.unwrap() - 1.8).abs() < 0.3, "{:?}", p.obstacle);
+    assert!(p.obstacle.present && (p.obstacle.distance_m.unwrap() - 1.8).abs() < 0.1, "{:?}", p.obstacle);
     assert!(p.obstacle.bearing_rad.unwrap() < 0.0);
+    // the floor alone: no obstacle
+    let pair = Scene { rects: vec![Rect::floor()] }.flow(&c, 16, 16, vel, DT);
+    assert!(!offis.step(&pair.field, vel, DT, &c).unwrap().obstacle.present);
 }
