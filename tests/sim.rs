@@ -124,11 +124,22 @@ fn start_pose_and_world_geometry_come_from_the_files() {
     assert!((total - 22.0).abs() < 1e-9, "perimeter {total}");
     assert!(g.cylinders.is_empty());
 
-    // The built-in office map and world agree on every place the map positions.
+    // The built-in office map and world agree on every place they share; the map's own corridor
+    // junctions C1..C5 lie on the centre line between opposite doors.
     let office = World::office();
     let map = TopoMap::parse(sim::OFFICE_MAP_TOML, "maps/office.toml").unwrap();
+    for name in office.places.keys() {
+        assert!(map.place(name).is_some(), "world place {name} missing from the map");
+    }
     for p in &map.places {
-        let world_xy = office.places.get(&p.name).unwrap_or_else(|| panic!("{} not in the world", p.name));
-        assert_eq!(p.position_m, Some(*world_xy), "{}", p.name);
+        match office.places.get(&p.name) {
+            Some(world_xy) => assert_eq!(p.position_m, Some(*world_xy), "{}", p.name),
+            None => {
+                let [x, y] = p.position_m.unwrap();
+                let k: usize = p.name.strip_prefix('C').and_then(|k| k.parse().ok()).expect("only C* are map-only");
+                let (north, south) = (office.places[&format!("D{k}")], office.places[&format!("D{}", k + 5)]);
+                assert_eq!([x, y], [north[0], (north[1] + south[1]) / 2.0], "{}", p.name);
+            }
+        }
     }
 }
