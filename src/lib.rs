@@ -17,6 +17,7 @@
 //! | [`logging`] | MCAP run logs for Foxglove: the non-blocking writer, the replay reader, `log info` | |
 //! | [`runtime`] | `flownav run`: camera thread → step thread → base, latest-frame-wins, set-point expiry and stops, latency | |
 //! | [`step`] | the pure per-frame step: flow → OFFIS → PAFSIS → MOFIS → set-point (shared by run, sim, analyze, replay) | Fig. 3 |
+//! | [`sim`] | the closed loop of `flownav sim`: rendered camera → pipeline → FNP/1 driver → simulated base over a pty | |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
@@ -37,3 +38,4 @@ pub mod replay;
 pub mod runtime;
 pub mod sources;
 pub mod step;
+pub mod sim;

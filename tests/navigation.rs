@@ -23,7 +23,9 @@ struct Walk {
     path_m: f64,
 }
 
-const DOOR_X: [f64; 10] = [3.0, 5.0, 7.0, 9.0, 11.0, 13.0, 15.0, 17.0, 19.0, 21.0];
+/// Doors (both sides) and the end walls of the office corridor (mocks/worlds/office.toml).
+const DOOR_X: [f64; 5] = [3.0, 9.0, 15.0, 21.0, 27.0];
+const END_WALL_X: f64 = 30.0;
 
 impl Walk {
     fn new(x: f64, y: f64, heading_deg: f64) -> Self {
@@ -38,7 +40,7 @@ impl Walk {
         }
         let dir = self.heading.cos().signum();
         let door = DOOR_X.iter().map(|&dx| (dx - self.x) * dir).filter(|d| (1.0..=4.0).contains(d)).reduce(f64::min);
-        let wall = if dir > 0.0 { 24.0 - self.x } else { self.x };
+        let wall = if dir > 0.0 { END_WALL_X - self.x } else { self.x };
         p.tpo = match door {
             Some(d) => Tpo { shape: TpoShape::Door, confidence: 0.9, distance_m: Some(d) },
             None if wall <= 5.0 => Tpo { shape: TpoShape::Wall, confidence: 0.9, distance_m: Some(wall) },
@@ -77,27 +79,31 @@ fn mission(map: &TopoMap, m: &str) -> Pafsis {
 fn office_plan_r9_to_d2() {
     let map = office();
     let nav = mission(&map, "R9:D2");
-    assert_eq!(nav.plan().waypoints, ["R9", "D9", "D8", "D7", "D6", "D5", "D4", "D3", "D2"]);
-    assert_eq!(nav.plan().length_m, 17.0);
-    // Exit R9, turn right into the corridor (facing west), one merged corridor leg.
+    assert_eq!(nav.plan().waypoints, ["R9", "D9", "C4", "C3", "C2", "D2"]);
+    assert_eq!(nav.plan().length_m, 15.5);
+    // Exit R9 to the centre line, turn left into the corridor (facing west), one merged corridor
+    // leg along the centre line, turn right to face D2, step up to it.
     let legs = nav.legs();
-    assert_eq!(legs.len(), 3, "{legs:#?}");
+    assert_eq!(legs.len(), 6, "{legs:#?}");
     assert!(matches!(&legs[0].kind, LegKind::Doorway { door, .. } if door == "D9"));
-    assert!(matches!(legs[1].kind, LegKind::Turn));
-    assert!((legs[1].heading_rad.abs() - std::f64::consts::PI).abs() < 1e-9);
-    assert_eq!(legs[2].to_string(), "follow the corridor 14.0 m passing 3 doors left, 3 right, stop at D2");
+    assert_eq!(legs[1].to_string(), "follow the corridor 0.5 m passing 0 doors left, 0 right");
+    assert!(matches!(legs[2].kind, LegKind::Turn));
+    assert!((legs[2].heading_rad.abs() - std::f64::consts::PI).abs() < 1e-9);
+    assert_eq!(legs[3].to_string(), "follow the corridor 12.0 m passing 0 doors left, 1 right, stop at D2");
+    assert!(matches!(legs[4].kind, LegKind::Turn));
+    assert!((legs[4].heading_rad - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
 }
 
 #[test]
 fn office_mission_arrives_in_front_of_d2() {
     let map = office();
     let mut nav = mission(&map, "R9:D2");
-    let mut walk = Walk::new(19.0, 3.0, -90.0);
+    let mut walk = Walk::new(21.0, -3.0, 90.0);
     let (status, events) = walk.run(&mut nav, 120.0);
     assert_eq!(status, GoalStatus::Arrived);
-    assert!((walk.x - 5.0).abs() < 0.3 && walk.y.abs() < 0.2, "stopped at ({:.2}, {:.2})", walk.x, walk.y);
+    assert!((walk.x - 9.0).abs() < 0.3 && (walk.y - 0.5).abs() < 0.2, "stopped at ({:.2}, {:.2})", walk.x, walk.y);
     let matched = events.iter().filter(|e| matches!(e, PafsisEvent::DoorMatched { .. })).count();
-    assert_eq!(matched, 7, "D8..D3 passed and D2 sighted: {events:#?}");
+    assert_eq!(matched, 2, "D3 passed and D2 sighted: {events:#?}");
     assert!(!events.iter().any(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })));
 }
 
@@ -105,33 +111,34 @@ fn office_mission_arrives_in_front_of_d2() {
 fn door_sightings_correct_bad_odometry() {
     let map = office();
     // Odometry under-reports distance by 20%.
-    let mut with = Walk { odo_scale: 0.8, ..Walk::new(19.0, 3.0, -90.0) };
+    let mut with = Walk { odo_scale: 0.8, ..Walk::new(21.0, -3.0, 90.0) };
     let (status, _) = with.run(&mut mission(&map, "R9:D2"), 120.0);
     assert_eq!(status, GoalStatus::Arrived);
-    assert!((with.x - 5.0).abs() < 0.4, "with landmarks stopped at x = {:.2}", with.x);
+    assert!((with.x - 9.0).abs() < 0.4, "with landmarks stopped at x = {:.2}", with.x);
 
-    let mut without = Walk { odo_scale: 0.8, landmarks: false, ..Walk::new(19.0, 3.0, -90.0) };
+    let mut without = Walk { odo_scale: 0.8, landmarks: false, ..Walk::new(21.0, -3.0, 90.0) };
     let (status, events) = without.run(&mut mission(&map, "R9:D2"), 120.0);
     assert_eq!(status, GoalStatus::Arrived);
-    assert!(without.x < 2.0, "odometry alone overshoots D2 (x = {:.2})", without.x);
+    assert!(without.x < 7.0, "odometry alone overshoots D2 by 3 m (x = {:.2})", without.x);
     let missed = events.iter().filter(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })).count();
-    assert_eq!(missed, 7, "every door reported missing");
+    assert_eq!(missed, 2, "every door reported missing");
 }
 
 #[test]
 fn missing_end_wall_relocalises_and_stops() {
     let map = office();
     let mut nav = mission(&map, "D3:J1");
-    let mut walk = Walk { landmarks: false, ..Walk::new(7.0, 0.0, 180.0) };
-    let (status, events) = walk.run(&mut nav, 60.0);
+    let mut walk = Walk { landmarks: false, ..Walk::new(15.0, 0.5, -90.0) };
+    let (status, events) = walk.run(&mut nav, 120.0);
     assert_eq!(status, GoalStatus::Arrived);
     assert!(events.iter().any(|e| matches!(e, PafsisEvent::Replanned { from, .. } if from == "J1")), "{events:#?}");
-    // The end wall at x = 0 was never reported; the robot gave up after 150% of the 6 m leg.
-    assert!((walk.path_m - 9.0).abs() < 0.3, "travelled {:.2} m", walk.path_m);
+    // The end wall at x = 0 was never reported; the robot gave up after 150% of the 14 m leg
+    // (after the 0.5 m step from D3 to the centre line).
+    assert!((walk.path_m - 21.5).abs() < 0.3, "travelled {:.2} m", walk.path_m);
 
     let mut nav = mission(&map, "D3:J1");
-    let mut walk = Walk::new(7.0, 0.0, 180.0);
-    let (status, events) = walk.run(&mut nav, 60.0);
+    let mut walk = Walk::new(15.0, 0.5, -90.0);
+    let (status, events) = walk.run(&mut nav, 120.0);
     assert_eq!(status, GoalStatus::Arrived);
     assert!(!events.iter().any(|e| matches!(e, PafsisEvent::Replanned { .. })));
     assert!((walk.x - 0.8).abs() < 0.1, "stops 0.8 m before the wall, at x = {:.2}", walk.x);
@@ -283,7 +290,7 @@ mod mofis {
         let map = office();
         let mut nav = mission(&map, "R9:D2");
         let mut m = mofis();
-        let mut walk = Walk::new(19.0, 3.0, -90.0);
+        let mut walk = Walk::new(21.0, -3.0, 90.0);
         let person = (12.0, person_y, 0.25); // x, y, radius
         let dt = 0.05;
         let (mut odo, mut min_clearance, mut arrived) = (BodyVelocity::ZERO, f64::INFINITY, false);
@@ -306,13 +313,15 @@ mod mofis {
             walk.heading += sp.omega * dt;
             walk.x += sp.v * dt * walk.heading.cos();
             walk.y += sp.v * dt * walk.heading.sin();
-            // The corridor walls are at y = ±1 (robot radius 0.2 m); above y = 0.8 only in D9's doorway.
-            let clear_of_walls = walk.y > -0.8 && (walk.y < 0.8 || (walk.x - 19.0).abs() < 0.4);
+            // The corridor walls are at y = ±1 (robot radius 0.2 m); beyond ±0.8 only in the
+            // doorways of D9 (south, x = 21) and D2 (north, x = 9).
+            let clear_of_walls =
+                (walk.y < 0.8 || (walk.x - 9.0).abs() < 0.4) && (walk.y > -0.8 || (walk.x - 21.0).abs() < 0.4);
             assert!(clear_of_walls, "person at y {person_y}: hit a corridor wall at ({:.2}, {:.2})", walk.x, walk.y);
             odo = sp;
         }
         assert!(arrived, "stuck at ({:.2}, {:.2})", walk.x, walk.y);
         assert!(min_clearance > 0.3, "person at y {person_y}: came within {min_clearance:.2} m of the person");
-        assert!((walk.x - 5.0).abs() < 0.5, "stopped at x = {:.2}", walk.x);
+        assert!((walk.x - 9.0).abs() < 0.5, "stopped at x = {:.2}", walk.x);
     }
 }

@@ -16,6 +16,7 @@ pub mod log;
 pub mod replay;
 pub mod run;
 pub mod sim_base;
+pub mod sim;
 
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
@@ -74,6 +75,8 @@ pub enum Command {
     SimBase(sim_base::Args),
     /// Re-run the pipeline on a run log's frames and odometry; --check compares with the logged outputs.
     Replay(replay::Args),
+    /// Closed loop in a simulated world: rendered camera, the pipeline, a simulated base over a pty; ends with a JSON summary.
+    Sim(sim::Args),
     /// Run OFFIS over a frame folder: one JSON line per frame pair (perception and set-point).
     Analyze(analyze::Args),
     /// OFFIS accuracy on a labelled simulated scene set: confusion matrix, obstacle errors.
@@ -90,6 +93,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::SimBase(args) => sim_base::run(args, &cli.common),
         Command::Run(args) => run::run(args, &cli.common),
         Command::Replay(args) => replay::run(args, &cli.common),
+        Command::Sim(args) => sim::run(args, &cli.common),
         Command::Analyze(args) => analyze::run(args, &cli.common),
         Command::BenchOffis(args) => bench_offis::run(args, &cli.common),
     }

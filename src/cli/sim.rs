@@ -1,0 +1,244 @@
+//! `flownav sim`: the closed loop in the simulated world (see [`crate::sim`]). Prints progress
+//! to stderr once per simulated second and ends with one JSON line on stdout:
+//! `{"reached":true,"collisions":0,"time_s":..,"path_m":..,"min_clearance_m":..,...}`.
+//! `--seeds A..B` runs one mission per seed and adds an aggregate line.
+
+use super::Common;
+use crate::logging::LogWriter;
+use crate::logging::record;
+use crate::pafsis::{Mission, TopoMap};
+use crate::sim::{self, OFFICE_MAP_TOML, SimSetup, SimSummary};
+use anyhow::Context;
+use clap::Args as ClapArgs;
+use hal::Calibration;
+use mocks::World;
+use serde::Serialize;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, Clone, ClapArgs)]
+pub struct Args {
+    /// World file (default: the built-in office, mocks/worlds/office.toml).
+    #[arg(long, value_name = "FILE")]
+    pub world: Option<PathBuf>,
+    /// Topological map (default: the built-in maps/office.toml; needed with another world).
+    #[arg(long, value_name = "FILE")]
+    pub map: Option<PathBuf>,
+    /// Mission FROM:TO (places of the map).
+    #[arg(long, default_value = "R9:D2", value_name = "FROM:TO")]
+    pub mission: String,
+    /// Random obstacle placement (World::with_random_obstacles) and noise seed; without it the
+    /// world file's own obstacles are used.
+    #[arg(long, value_name = "N", conflicts_with = "seeds")]
+    pub seed: Option<u64>,
+    /// Run one mission per seed in A..B (B excluded) and print an aggregate line last.
+    #[arg(long, value_name = "A..B", value_parser = parse_range)]
+    pub seeds: Option<(u64, u64)>,
+    /// Sensor noise, standard deviation in grey levels.
+    #[arg(long, default_value_t = 2.0, value_name = "SIGMA")]
+    pub noise: f64,
+    /// Camera and control rate, frames per simulated second.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f64,
+    /// Give up after this much simulated time, s.
+    #[arg(long, default_value_t = 120.0, value_name = "S")]
+    pub max_time: f64,
+    /// Render size WxH (the calibration's intrinsics are scaled to it).
+    #[arg(long, value_name = "WxH", value_parser = parse_size, default_value = "320x180")]
+    pub size: (u32, u32),
+    /// Pace the loop to the wall clock (default: as fast as possible).
+    #[arg(long)]
+    pub realtime: bool,
+    /// Directory for the MCAP log (default logs/; with --seeds, no log unless given).
+    #[arg(long, value_name = "DIR", conflicts_with = "no_log")]
+    pub log: Option<PathBuf>,
+    /// Do not write a log.
+    #[arg(long)]
+    pub no_log: bool,
+    /// No progress lines on stderr.
+    #[arg(long, short)]
+    pub quiet: bool,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("size {s:?} must be WxH, e.g. 640x360"))?;
+    let p = |v: &str| v.trim().parse::<u32>().ok().filter(|&n| (64..=4096).contains(&n));
+    match (p(w), p(h)) {
+        (Some(w), Some(h)) => Ok((w, h)),
+        _ => Err(format!("size {s:?}: width and height must be whole numbers of pixels in 64..=4096")),
+    }
+}
+
+fn parse_range(s: &str) -> Result<(u64, u64), String> {
+    let bad = || format!("seed range {s:?} must be A..B with A < B, e.g. 0..20");
+    let (a, b) = s.split_once("..").ok_or_else(bad)?;
+    let (a, b) = (a.trim().parse::<u64>().map_err(|_| bad())?, b.trim().parse::<u64>().map_err(|_| bad())?);
+    if a < b { Ok((a, b)) } else { Err(bad()) }
+}
+
+/// Aggregate of a `--seeds` run.
+#[derive(Debug, Serialize)]
+pub struct Aggregate {
+    pub runs: usize,
+    pub reached: usize,
+    pub success_rate: f64,
+    pub collisions: u64,
+    pub runs_with_collisions: usize,
+    pub mean_time_s: f64,
+    pub max_time_s: f64,
+    pub mean_path_m: f64,
+    pub min_clearance_m: f64,
+    pub mean_min_clearance_m: f64,
+    pub mean_goal_error_m: f64,
+    pub failsafe_stops: u64,
+    pub wall_s: f64,
+    pub realtime_factor: f64,
+    pub failed_seeds: Vec<u64>,
+}
+
+impl Aggregate {
+    pub fn of(runs: &[SimSummary]) -> Self {
+        let n = runs.len().max(1) as f64;
+        let sum = |f: fn(&SimSummary) -> f64| runs.iter().map(f).sum::<f64>();
+        let sim_s = sum(|r| r.time_s);
+        let wall_s = sum(|r| r.wall_s);
+        let r3 = |x: f64| (x * 1000.0).round() / 1000.0;
+        Self {
+            runs: runs.len(),
+            reached: runs.iter().filter(|r| r.reached).count(),
+            success_rate: r3(runs.iter().filter(|r| r.reached).count() as f64 / n),
+            collisions: runs.iter().map(|r| r.collisions).sum(),
+            runs_with_collisions: runs.iter().filter(|r| r.collisions > 0).count(),
+            mean_time_s: r3(sim_s / n),
+            max_time_s: runs.iter().map(|r| r.time_s).fold(0.0, f64::max),
+            mean_path_m: r3(sum(|r| r.path_m) / n),
+            min_clearance_m: runs.iter().map(|r| r.min_clearance_m).fold(f64::INFINITY, f64::min),
+            mean_min_clearance_m: r3(sum(|r| r.min_clearance_m) / n),
+            mean_goal_error_m: r3(sum(|r| r.goal_error_m) / n),
+            failsafe_stops: runs.iter().map(|r| r.failsafe_stops).sum(),
+            wall_s: r3(wall_s),
+            realtime_factor: r3(sim_s / wall_s.max(1e-9)),
+            failed_seeds: runs.iter().filter(|r| !r.reached || r.collisions > 0).map(|r| r.seed).collect(),
+        }
+    }
+}
+
+/// The calibration file; when the default `calib/c310.toml` is not reachable from here, the
+/// built-in nominal C310 (the same numbers) is used with a warning, so `flownav sim` runs anywhere.
+fn load_calib(path: &Path) -> anyhow::Result<Calibration> {
+    if path == Path::new("calib/c310.toml") && !path.exists() {
+        tracing::warn!("calib/c310.toml not found from this directory: using the built-in nominal C310 calibration");
+        return Ok(Calibration::nominal_c310());
+    }
+    Calibration::load(path).with_context(|| format!("loading the calibration {}", path.display()))
+}
+
+pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
+    let config = common.config()?;
+    let calib = load_calib(&common.calib)?.scaled_to(args.size.0, args.size.1);
+    let world = match &args.world {
+        Some(path) => World::load(path)?,
+        None => World::office(),
+    };
+    let map = match (&args.map, &args.world) {
+        (Some(path), _) => TopoMap::load(path)?,
+        (None, None) => TopoMap::parse(OFFICE_MAP_TOML, "maps/office.toml (built in)")?,
+        (None, Some(w)) => anyhow::bail!(
+            "--world {} needs its topological map: pass --map FILE (the built-in map describes the built-in office only)",
+            w.display()
+        ),
+    };
+    let mission: Mission = args.mission.parse().with_context(|| format!("--mission {}", args.mission))?;
+    let seeds: Vec<Option<u64>> = match (args.seeds, args.seed) {
+        (Some((a, b)), _) => (a..b).map(Some).collect(),
+        (None, s) => vec![s],
+    };
+    let log_dir = match (&args.log, args.no_log, args.seeds.is_some()) {
+        (Some(dir), _, _) => Some(dir.clone()),
+        (None, false, false) => Some(PathBuf::from("logs")),
+        _ => None,
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the tokio runtime")?;
+    let mut results = Vec::new();
+    for seed in &seeds {
+        let world = match seed {
+            Some(s) if world.random.is_some() => {
+                world.with_random_obstacles(*s).with_context(|| format!("placing random obstacles for seed {s}"))?
+            }
+            Some(_) => {
+                tracing::warn!("the world has no [random] section: --seed only seeds the noise");
+                world.clone()
+            }
+            None => world.clone(),
+        };
+        let mut setup = SimSetup::new(world, map.clone(), mission.clone(), config.clone(), calib.clone());
+        setup.fps = args.fps;
+        setup.noise_sigma = args.noise;
+        setup.seed = seed.unwrap_or(0);
+        setup.max_time_s = args.max_time;
+        setup.realtime = args.realtime;
+        if !args.quiet {
+            let start = setup.start_pose()?;
+            eprintln!(
+                "flownav sim: mission {} on world {:?} (seed {}), {}x{} at {} fps, start ({:.2}, {:.2}, {:.0}°)",
+                setup.mission,
+                setup.world.name,
+                seed.map_or("none (the file's obstacles)".to_string(), |s| s.to_string()),
+                args.size.0,
+                args.size.1,
+                args.fps,
+                start.x,
+                start.y,
+                start.yaw.to_degrees()
+            );
+        }
+        if !args.quiet {
+            let nav =
+                crate::pafsis::Pafsis::new(setup.map.clone(), setup.mission.clone(), setup.config.pafsis.clone())?;
+            let legs: Vec<String> = nav.legs().iter().map(|l| l.to_string()).collect();
+            eprintln!(
+                "plan: {} ({:.1} m); legs: {}",
+                nav.plan().waypoints.join(" → "),
+                nav.plan().length_m,
+                legs.join("; ")
+            );
+        }
+        let log = match &log_dir {
+            Some(dir) => {
+                let mission = setup.mission.to_string();
+                let mut options = record::run_options("sim", &setup.config, &setup.calib, Some(&mission), None);
+                record::add_map(&mut options, &setup.map);
+                Some(LogWriter::create(dir, options).context("opening the MCAP log")?)
+            }
+            None => None,
+        };
+        let handle = log.as_ref().map(|l| l.handle());
+        let quiet = args.quiet;
+        let summary = rt.block_on(sim::run(&setup, handle.as_ref(), |p| {
+            if !quiet {
+                eprintln!("{p}");
+            }
+        }))?;
+        if let Some(log) = log {
+            let path = log.path().to_path_buf();
+            let s = log.close().context("closing the MCAP log")?;
+            if !args.quiet {
+                eprintln!("log: {} ({s:?})", path.display());
+            }
+        }
+        let mut out = std::io::stdout().lock();
+        writeln!(out, "{}", summary.to_json_line())?;
+        out.flush()?;
+        results.push(summary);
+    }
+    if args.seeds.is_some() {
+        let agg = Aggregate::of(&results);
+        let mut out = std::io::stdout().lock();
+        writeln!(out, "{}", serde_json::to_string(&agg)?)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,145 @@
+//! `flownav sim` in closed loop on a small world: rendered frames → the pipeline → the real
+//! FNP/1 driver over a pty → the simulated base, to the goal without collisions.
+
+use flownav::config::Config;
+use flownav::pafsis::{GoalStatus, Mission, TopoMap};
+use flownav::sim::{self, SimSetup, SimSummary};
+use hal::Calibration;
+use mocks::World;
+
+/// A 3 m wide, 8 m long empty hall; the robot starts at A facing east and must stop at B, 3 m on.
+const HALL: &str = r#"
+name = "hall"
+wall_height = 2.6
+ceiling_height = 2.6
+start = { x = 1.0, y = 0.0, yaw_deg = 0.0 }
+
+[[walls]]
+name = "outer"
+points = [[0.0, -1.5], [8.0, -1.5], [8.0, 1.5], [0.0, 1.5], [0.0, -1.5]]
+
+[places]
+A = [1.0, 0.0]
+B = [4.0, 0.0]
+"#;
+
+const HALL_MAP: &str = r#"
+name = "hall"
+
+[[place]]
+name = "A"
+kind = "junction"
+position_m = [1.0, 0.0]
+heading_deg = 0
+
+[[place]]
+name = "B"
+kind = "junction"
+position_m = [4.0, 0.0]
+
+[[edge]]
+from = "A"
+to = "B"
+heading_deg = 0
+actions = [{ do = "follow_corridor", length_m = 3.0 }]
+"#;
+
+fn hall_setup() -> SimSetup {
+    let world = World::from_toml(HALL, "hall.toml").unwrap();
+    let map = TopoMap::parse(HALL_MAP, "hall-map.toml").unwrap();
+    let calib = Calibration::nominal_c310().scaled_to(320, 180);
+    let mut setup = SimSetup::new(world, map, "A:B".parse::<Mission>().unwrap(), Config::default(), calib);
+    setup.noise_sigma = 2.0;
+    setup.max_time_s = 40.0;
+    setup
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn closed_loop_reaches_the_goal_without_collisions() {
+    let setup = hall_setup();
+    let mut seconds = 0;
+    let s = sim::run(&setup, None, |_| seconds += 1).await.expect("the simulation runs");
+    assert!(s.reached, "{}", s.to_json_line());
+    assert_eq!(s.status, GoalStatus::Arrived);
+    assert_eq!(s.collisions, 0, "{}", s.to_json_line());
+    assert!(s.goal_error_m <= 0.5, "{}", s.to_json_line());
+    // 3 m of leg: the true path is at least that and not much more.
+    assert!(s.path_m > 2.5 && s.path_m < 4.0, "{}", s.to_json_line());
+    // The hall is 3 m wide: the robot centre never came within 0.5 m of a wall.
+    assert!(s.min_clearance_m > 0.5, "{}", s.to_json_line());
+    assert_eq!(s.frames as f64, (s.time_s * setup.fps).round() + 1.0);
+    assert!(seconds >= s.time_s.floor() as usize, "one progress line per simulated second");
+    assert_eq!(s.failsafe_stops, 0);
+    assert!(!s.pose_hint);
+}
+
+#[test]
+fn summary_json_starts_with_the_contract_fields() {
+    let s = SimSummary {
+        reached: true,
+        collisions: 0,
+        time_s: 41.5,
+        path_m: 15.25,
+        min_clearance_m: 0.375,
+        seed: 3,
+        mission: "R9:D2".into(),
+        status: GoalStatus::Arrived,
+        goal_error_m: 0.25,
+        frames: 1246,
+        failsafe_stops: 0,
+        tpo_frames: [1, 2, 3, 4, 5],
+        doors_matched: 0,
+        landmarks_missed: 0,
+        replans: 0,
+        wall_s: 20.75,
+        realtime_factor: 2.0,
+        size: [640, 360],
+        fps: 30.0,
+        noise: 2.0,
+        pose_hint: false,
+    };
+    let line = s.to_json_line();
+    assert!(
+        line.starts_with(r#"{"reached":true,"collisions":0,"time_s":41.5,"path_m":15.25,"min_clearance_m":0.375,"#),
+        "{line}"
+    );
+    assert!(!line.contains('\n'));
+    let v: serde_json::Value = serde_json::from_str(&line).unwrap();
+    assert_eq!(v["status"], "arrived");
+    assert_eq!(v["seed"], 3);
+}
+
+#[test]
+fn start_pose_and_world_geometry_come_from_the_files() {
+    let setup = hall_setup();
+    let start = setup.start_pose().unwrap();
+    assert_eq!((start.x, start.y, start.yaw), (1.0, 0.0, 0.0));
+    assert_eq!(setup.place_position("B").unwrap(), [4.0, 0.0]);
+    assert!(setup.place_position("C").unwrap_err().to_string().contains("\"C\""));
+    let g = sim::world_geometry(&setup.world);
+    // The outer wall: four full-height segments, no obstacles.
+    assert_eq!(g.boxes.len(), 4);
+    assert!(g.boxes.iter().all(|b| b.wall && (b.size_m[2] - 2.6).abs() < 1e-9));
+    let total: f64 = g.boxes.iter().map(|b| b.size_m[0]).sum();
+    assert!((total - 22.0).abs() < 1e-9, "perimeter {total}");
+    assert!(g.cylinders.is_empty());
+
+    // The built-in office map and world agree on every place they share; the map's own corridor
+    // junctions C1..C5 lie on the centre line between opposite doors.
+    let office = World::office();
+    let map = TopoMap::parse(sim::OFFICE_MAP_TOML, "maps/office.toml").unwrap();
+    for name in office.places.keys() {
+        assert!(map.place(name).is_some(), "world place {name} missing from the map");
+    }
+    for p in &map.places {
+        match office.places.get(&p.name) {
+            Some(world_xy) => assert_eq!(p.position_m, Some(*world_xy), "{}", p.name),
+            None => {
+                let [x, y] = p.position_m.unwrap();
+                let k: usize = p.name.strip_prefix('C').and_then(|k| k.parse().ok()).expect("only C* are map-only");
+                let (north, south) = (office.places[&format!("D{k}")], office.places[&format!("D{}", k + 5)]);
+                assert_eq!([x, y], [north[0], (north[1] + south[1]) / 2.0], "{}", p.name);
+            }
+        }
+    }
+}
