@@ -36,6 +36,6 @@ pub mod pafsis;
 pub mod perception;
 pub mod replay;
 pub mod runtime;
+pub mod sim;
 pub mod sources;
 pub mod step;
-pub mod sim;

@@ -9,14 +9,14 @@ use std::path::PathBuf;
 
 pub mod analyze;
 pub mod bench_offis;
-pub mod flow;
-pub mod render;
 pub mod devices;
+pub mod flow;
 pub mod log;
+pub mod render;
 pub mod replay;
 pub mod run;
-pub mod sim_base;
 pub mod sim;
+pub mod sim_base;
 
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
