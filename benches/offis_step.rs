@@ -1,6 +1,7 @@
 //! Criterion benchmark of one OFFIS step (after flow): de-rotation, outlier filter, quadrant
-//! matrices, planes, tilt, masks, zoom-in and distances on a 16×16 field (DESIGN.md budget:
-//! ≤ 0.2 ms). The field is the closed-form flow of a corridor with a box, turning while driving.
+//! matrices, planes, tilt, masks, zoom-in, distances, the plane fit, the situation classifiers
+//! and the obstacle decision on a 16×16 field (DESIGN.md budget: ≤ 0.2 ms). The field is the
+//! closed-form flow of a corridor with a box, turning while driving.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use flownav::offis::synth::{Rect, Scene};
