@@ -194,6 +194,13 @@ impl Camera for SourceCamera {
             SourceCamera::Folder(c) => c.capture(),
         }
     }
+
+    fn take_encoded(&mut self) -> Option<std::sync::Arc<[u8]>> {
+        match self {
+            SourceCamera::V4l2(c) => c.take_encoded(),
+            SourceCamera::Folder(_) => None,
+        }
+    }
 }
 
 /// Opens the camera `spec` names: a device is negotiated with `cfg`'s format, size, fps and stall

@@ -306,3 +306,66 @@ async fn setpoints_resume_after_the_base_link_comes_back() {
     assert!(resumed >= 10, "{resumed} moving set-points after the reconnect; report {report:?}");
     assert!(report.base_disconnects >= 1 && report.link.reconnects >= 1, "{report:?}");
 }
+
+/// A camera that delivers MJPEG frames like a UVC webcam: the luma it returns is the decode of
+/// the JPEG bytes it hands out through `take_encoded`.
+struct JpegCamera {
+    inner: TestCamera,
+    decoder: hal::mjpeg::MjpegDecoder,
+    last: Option<Arc<[u8]>>,
+    sent: Arc<Mutex<Vec<Arc<[u8]>>>>,
+}
+
+impl Camera for JpegCamera {
+    type Error = CamError;
+
+    fn capture(&mut self) -> Result<Frame, CamError> {
+        let mut frame = self.inner.capture()?;
+        let mut jpeg = Vec::new();
+        let img = &frame.image;
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
+            .encode(img.data(), img.width() as u32, img.height() as u32, image::ExtendedColorType::L8)
+            .map_err(|_| CamError(ErrorKind::BadData))?;
+        self.decoder.decode_into(&jpeg, &mut frame.image).map_err(|_| CamError(ErrorKind::BadData))?;
+        let jpeg: Arc<[u8]> = jpeg.into();
+        self.sent.lock().unwrap().push(jpeg.clone());
+        self.last = Some(jpeg);
+        Ok(frame)
+    }
+
+    fn take_encoded(&mut self) -> Option<Arc<[u8]>> {
+        self.last.take()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn mjpeg_frames_are_logged_as_the_camera_sent_them() {
+    use flownav::logging::{LogEvent, LogReader, LogWriter, LoggedImage, record};
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.mcap");
+    let cfg = Config::default();
+    let options = record::run_options("run", &cfg, &Calibration::nominal_c310(), None, None);
+    let writer = LogWriter::create_at(&path, options).unwrap();
+    let server = serve(None);
+    let base = connect(&server.pty_path()).await;
+    let (inner, _) = TestCamera::new(15.0, 12, Then::End);
+    let sent = Arc::new(Mutex::new(Vec::new()));
+    let camera = JpegCamera { inner, decoder: hal::mjpeg::MjpegDecoder::new(), last: None, sent: sent.clone() };
+    let never = std::future::pending::<()>();
+    let report = timeout(GUARD, run(camera, base, pipeline(), Some(writer.handle()), never, opts())).await.unwrap();
+    assert_eq!(report.unwrap().ended, EndReason::EndOfStream);
+    writer.close().unwrap();
+    let sent = sent.lock().unwrap().clone();
+    let mut jpegs = Vec::new();
+    for entry in LogReader::open(&path).unwrap() {
+        match entry.unwrap().event {
+            LogEvent::Image(LoggedImage::Jpeg(bytes)) => jpegs.push(bytes),
+            LogEvent::Image(other) => panic!("expected the camera's JPEG bytes, got {other:?}"),
+            _ => {}
+        }
+    }
+    assert!(!jpegs.is_empty(), "images were logged");
+    for bytes in &jpegs {
+        assert!(sent.iter().any(|s| s[..] == bytes[..]), "a logged image is byte-identical to one the camera sent");
+    }
+}

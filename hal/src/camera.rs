@@ -22,6 +22,13 @@ pub trait Camera: Send {
 
     /// The next frame.
     fn capture(&mut self) -> Result<Frame, Self::Error>;
+
+    /// The encoded bytes (an MJPEG frame) the last `capture` decoded, if the source had any:
+    /// the runtime logs them as they came, without re-encoding. Taken once; later calls give
+    /// `None` until the next capture.
+    fn take_encoded(&mut self) -> Option<std::sync::Arc<[u8]>> {
+        None
+    }
 }
 
 /// Now on the host's monotonic clock (`CLOCK_MONOTONIC`), in nanoseconds.

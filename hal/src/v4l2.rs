@@ -503,6 +503,8 @@ pub struct V4l2Camera {
     /// Set once the device reported it is gone: every later capture says so again.
     gone: bool,
     decoder: MjpegDecoder,
+    /// The MJPEG bytes of the last decoded frame (for logging as captured).
+    last_jpeg: Option<std::sync::Arc<[u8]>>,
     seq: u64,
     last_driver_seq: Option<u32>,
     dropped: u64,
@@ -582,6 +584,7 @@ impl V4l2Camera {
             streaming: false,
             gone: false,
             decoder: MjpegDecoder::with_max_size(cfg.width as usize, cfg.height as usize),
+            last_jpeg: None,
             seq: 0,
             last_driver_seq: None,
             dropped: 0,
@@ -751,6 +754,7 @@ impl V4l2Camera {
                 self.decoder
                     .decode_into(data, &mut img)
                     .map_err(|source| V4l2Error::Mjpeg { path: self.cfg.device.clone(), source })?;
+                self.last_jpeg = Some(std::sync::Arc::from(data));
                 if (img.width(), img.height()) != (w, h) {
                     return Err(V4l2Error::FrameSize {
                         path: self.cfg.device.clone(),
@@ -843,6 +847,10 @@ impl Camera for V4l2Camera {
         let frame = Frame { seq: self.seq, t_ns, image };
         self.seq += 1;
         Ok(frame)
+    }
+
+    fn take_encoded(&mut self) -> Option<std::sync::Arc<[u8]>> {
+        self.last_jpeg.take()
     }
 }
 

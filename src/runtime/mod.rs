@@ -220,6 +220,9 @@ struct Shared {
     /// Step durations: (wall, thread CPU).
     step_times: Mutex<(LatencyHistogram, LatencyHistogram)>,
     stop: AtomicBool,
+    /// The encoded bytes (MJPEG) of the latest frame put in the slot, with its `seq`, so the step
+    /// thread logs the camera's bytes as they came instead of the decoded luma.
+    encoded: Mutex<Option<(u64, std::sync::Arc<[u8]>)>>,
 }
 
 /// Runs the robot until the camera's source ends, `shutdown` completes, or a fatal error.
@@ -246,6 +249,7 @@ where
     }
     let shared = Arc::new(Shared {
         slot: FrameSlot::new(),
+        encoded: Mutex::new(None),
         counters: Counters::default(),
         odometry: Mutex::new(OdometryHistory::new(128)),
         step_times: Mutex::new((LatencyHistogram::new(), LatencyHistogram::new())),
@@ -639,7 +643,11 @@ fn step_loop(
             .map_or(BodyVelocity::ZERO, |o| o.velocity);
         let (seq, t_ns) = (frame.seq, frame.t_ns);
         if let Some(h) = logger {
-            record_frame(h, &frame, RecordImage::Mono8(&frame.image));
+            let encoded = shared.encoded.lock().unwrap_or_else(|e| e.into_inner()).take();
+            match encoded {
+                Some((s, jpeg)) if s == seq => record_frame(h, &frame, RecordImage::Jpeg(jpeg)),
+                _ => record_frame(h, &frame, RecordImage::Mono8(&frame.image)),
+            };
         }
         let (wall0, cpu0) = (monotonic_ns(), thread_cpu_ns());
         let outcome = catch_unwind(AssertUnwindSafe(|| pipeline.step(frame, velocity)));
@@ -692,6 +700,8 @@ fn camera_loop<C: Camera>(mut camera: C, shared: &Shared, tx: &mpsc::UnboundedSe
                     backoff = opts.camera_backoff_initial;
                     let _ = tx.send(Msg::CameraUp);
                 }
+                let encoded = camera.take_encoded().map(|bytes| (frame.seq, bytes));
+                *shared.encoded.lock().unwrap_or_else(|e| e.into_inner()) = encoded;
                 shared.slot.put(frame);
             }
             Ok(Err(e)) => match e.kind() {

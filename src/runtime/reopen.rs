@@ -56,6 +56,10 @@ where
         }
         result
     }
+
+    fn take_encoded(&mut self) -> Option<std::sync::Arc<[u8]>> {
+        self.camera.as_mut().and_then(Camera::take_encoded)
+    }
 }
 
 #[cfg(test)]
