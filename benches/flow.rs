@@ -17,22 +17,11 @@ use flownav::flow::sad::Kernel;
 use flownav::flow::{FlowEngine, FlowParams};
 use hal::LumaImage;
 use std::hint::black_box;
-use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 fn graf() -> LumaImage {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let candidates: Vec<PathBuf> = std::env::var_os("FLOWNAV_DATA")
-        .map(PathBuf::from)
-        .into_iter()
-        .chain([root.join("data"), root.join("../shared/data"), root.join("../../shared/data")])
-        .collect();
-    let path = candidates
-        .iter()
-        .map(|d| d.join("graf_shift_512/0000.png"))
-        .find(|p| p.is_file())
-        .unwrap_or_else(|| panic!("graf_shift_512/0000.png not found in {candidates:?}; set FLOWNAV_DATA"));
-    flownav::frames::load_luma(path).unwrap()
+    let path = flownav::frames::reference_data_dir().join("graf_shift_512/0000.png");
+    flownav::frames::load_luma(&path).unwrap_or_else(|e| panic!("{e} (set FLOWNAV_DATA to the reference data folder)"))
 }
 
 /// Bilinear sample of `src` mirrored infinitely in both directions.

@@ -47,6 +47,15 @@ pub fn save_png(img: &LumaImage, path: impl AsRef<Path>) -> Result<(), image::Im
     image::save_buffer(path, img.data(), img.width() as u32, img.height() as u32, image::ExtendedColorType::L8)
 }
 
+/// The reference data with ground truth that ships in the repository's `data/` folder (see its
+/// README): real image pairs for the flow accuracy tests and benchmarks, and the scikit-fuzzy
+/// grid. `FLOWNAV_DATA` overrides the location.
+pub fn reference_data_dir() -> PathBuf {
+    std::env::var_os("FLOWNAV_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("data"))
+}
+
 /// One row of `odometry.csv`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OdometryRow {

@@ -1,26 +1,24 @@
 //! Flow on real images with ground truth (`shared/data`, see its README) and the `flownav flow`
 //! command end to end.
 //!
-//! The data folder is found through `FLOWNAV_DATA`, else `data/`, `../shared/data` or
-//! `../../shared/data` next to the repository root.
+//! The data folder is `data/` in the repository (`flownav::frames::reference_data_dir`;
+//! `FLOWNAV_DATA` overrides it).
 
 use flownav::flow::cpu::CpuFlow;
 use flownav::flow::{FlowEngine, FlowField, FlowParams, Placement, Validity};
 use flownav::frames::load_luma;
 use hal::LumaImage;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
 
 fn data_dir() -> PathBuf {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let candidates: Vec<PathBuf> = std::env::var_os("FLOWNAV_DATA")
-        .map(PathBuf::from)
-        .into_iter()
-        .chain([root.join("data"), root.join("../shared/data"), root.join("../../shared/data")])
-        .collect();
-    candidates.iter().find(|p| p.join("graf_shift_512/0000.png").is_file()).cloned().unwrap_or_else(|| {
-        panic!("reference data not found in {candidates:?}: set FLOWNAV_DATA to the folder holding graf_shift_512/ and motorcycle_stereo/")
-    })
+    let dir = flownav::frames::reference_data_dir();
+    assert!(
+        dir.join("graf_shift_512/0000.png").is_file(),
+        "reference data not found in {}: set FLOWNAV_DATA to the folder holding graf_shift_512/ and motorcycle_stereo/",
+        dir.display()
+    );
+    dir
 }
 
 /// One row of `gt/blocks32_tile.csv`.

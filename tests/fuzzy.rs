@@ -19,12 +19,7 @@ struct Row {
 }
 
 fn csv_path() -> PathBuf {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
-    ["shared/data/fuzzy", "../../shared/data/fuzzy", "../shared/data/fuzzy"]
-        .iter()
-        .map(|d| root.join(d).join("fuzzy_grid_21x21.csv"))
-        .find(|p| p.exists())
-        .unwrap_or_else(|| PathBuf::from("/work/shared/data/fuzzy/fuzzy_grid_21x21.csv"))
+    flownav::frames::reference_data_dir().join("fuzzy/fuzzy_grid_21x21.csv")
 }
 
 fn rows() -> Vec<Row> {
