@@ -323,6 +323,15 @@ pub(crate) struct Shared {
 }
 
 impl Shared {
+    /// `Ok` while the link is up; while the task reconnects, commands fail with `Disconnected`.
+    pub fn check_connected(&self, port: &str) -> Result<(), SerialBaseError> {
+        if self.connected.load(Ordering::Relaxed) {
+            Ok(())
+        } else {
+            Err(SerialBaseError::Disconnected { port: port.into(), reason: "reconnecting".into() })
+        }
+    }
+
     pub fn stats(&self) -> LinkStats {
         let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
         LinkStats {
@@ -428,21 +437,13 @@ impl FnpBase {
     fn send_command(&self, cmd: Command) {
         self.cmd_tx.send_replace(CommandMsg { cmd, at: Instant::now() });
     }
-
-    fn check_connected(&self) -> Result<(), SerialBaseError> {
-        if self.shared.connected.load(Ordering::Relaxed) {
-            Ok(())
-        } else {
-            Err(SerialBaseError::Disconnected { port: self.port.clone(), reason: "reconnecting".into() })
-        }
-    }
 }
 
 impl MotorBase for FnpBase {
     type Error = SerialBaseError;
 
     fn set_velocity(&mut self, cmd: BodyVelocity) -> Result<(), SerialBaseError> {
-        self.check_connected()?;
+        self.shared.check_connected(&self.port)?;
         let v_mm_s = fnp::to_i16_clamped(cmd.v, 1000.0);
         let omega_mrad_s = fnp::to_i16_clamped(cmd.omega, 1000.0);
         self.send_command(Command::Drive { v_mm_s, omega_mrad_s });
@@ -451,7 +452,7 @@ impl MotorBase for FnpBase {
 
     fn stop(&mut self) -> Result<(), SerialBaseError> {
         self.send_command(Command::Stop);
-        self.check_connected()
+        self.shared.check_connected(&self.port)
     }
 
     async fn next_event(&mut self, timeout: Duration) -> Result<Option<BaseEvent>, SerialBaseError> {

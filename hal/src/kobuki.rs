@@ -380,28 +380,20 @@ impl KobukiBase {
             let _ = task.await;
         }
     }
-
-    fn check_connected(&self) -> Result<(), SerialBaseError> {
-        if self.shared.connected.load(Ordering::Relaxed) {
-            Ok(())
-        } else {
-            Err(SerialBaseError::Disconnected { port: self.port.clone(), reason: "reconnecting".into() })
-        }
-    }
 }
 
 impl MotorBase for KobukiBase {
     type Error = SerialBaseError;
 
     fn set_velocity(&mut self, cmd: BodyVelocity) -> Result<(), SerialBaseError> {
-        self.check_connected()?;
+        self.shared.check_connected(&self.port)?;
         self.cmd_tx.send_replace(CommandMsg { v: cmd, at: Instant::now() });
         Ok(())
     }
 
     fn stop(&mut self) -> Result<(), SerialBaseError> {
         self.cmd_tx.send_replace(CommandMsg { v: BodyVelocity::ZERO, at: Instant::now() });
-        self.check_connected()
+        self.shared.check_connected(&self.port)
     }
 
     async fn next_event(&mut self, timeout: Duration) -> Result<Option<BaseEvent>, SerialBaseError> {
