@@ -11,10 +11,12 @@
 
 use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
+use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::{Mofis, MofisError, MofisOutput};
+use crate::offis::points::SurfacePoint;
 use crate::offis::{Offis, OffisError};
 use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
-use crate::perception::Perception;
+use crate::perception::{Obstacle, Perception};
 use hal::{BodyVelocity, Calibration, Frame};
 
 #[derive(Debug, thiserror::Error)]
@@ -43,6 +45,12 @@ pub enum PipelineError {
     Offis(#[from] crate::offis::ClassifyError),
 }
 
+/// Steering around remembered obstacles ([`ObstacleMemory::steer`]): the path must be free
+/// this far, m; candidate headings within this angle of the robot's heading, in these steps, rad.
+const STEER_LOOKAHEAD_M: f64 = 1.5;
+const STEER_MAX_RAD: f64 = 0.7;
+const STEER_STEP_RAD: f64 = 0.05;
+
 /// What one step produced (the newer frame of the pair is `seq`, captured at `t_ns`).
 #[derive(Clone, Debug)]
 pub struct StepOutput {
@@ -52,6 +60,9 @@ pub struct StepOutput {
     pub dt: f64,
     pub flow: FlowField,
     pub perception: Perception,
+    /// The obstacle MOFIS avoided: the obstacle memory's threat (the nearest solid thing in or
+    /// beside the robot's path, remembered over frames), not this frame's OFFIS obstacle.
+    pub avoided: Obstacle,
     pub goal: Goal,
     pub mofis: MofisOutput,
 }
@@ -81,6 +92,8 @@ pub struct Pipeline {
     offis: Offis,
     navigator: Navigator,
     mofis: Mofis,
+    memory: ObstacleMemory,
+    points: Vec<SurfacePoint>,
     prev: Option<Frame>,
 }
 
@@ -94,9 +107,13 @@ impl Pipeline {
             Some((map, mission)) => Navigator::Mission(Box::new(Pafsis::new(map, mission, cfg.pafsis.clone())?)),
             None => Navigator::Cruise(cfg.pafsis.cruise_speed),
         };
+        let half_fov = ((calib.camera.width as f64 / 2.0) / calib.camera.fx).atan();
+        let memory = ObstacleMemory::new(cfg.mofis.memory, half_fov);
         Ok(Self {
             calib,
             frame_calib: None,
+            memory,
+            points: Vec::new(),
             flow,
             backend,
             offis: Offis::new(cfg.offis.clone())?,
@@ -114,6 +131,17 @@ impl Pipeline {
     /// The OFFIS stage (its `attributes()` hold the matrices of the last step, for logging).
     pub fn offis(&self) -> &Offis {
         &self.offis
+    }
+
+    /// The solid surface points of the last step, robot frame (what the obstacle memory took in
+    /// when the step was measurable).
+    pub fn surface_points(&self) -> &[SurfacePoint] {
+        &self.points
+    }
+
+    /// The obstacle memory.
+    pub fn memory(&self) -> &ObstacleMemory {
+        &self.memory
     }
 
     /// The PAFSIS planner, when running a mission.
@@ -140,6 +168,7 @@ impl Pipeline {
     /// the previous frame so the next pair does not span the gap.
     pub fn fail_safe(&mut self) -> BodyVelocity {
         self.prev = None;
+        self.memory.clear();
         self.mofis.fallback()
     }
 
@@ -164,8 +193,22 @@ impl Pipeline {
             Navigator::Mission(pafsis) => pafsis.step(&perception, odometry, dt),
             Navigator::Cruise(v) => Goal { velocity: *v, angle_rad: 0.0, status: GoalStatus::Active },
         };
-        let mofis = self.mofis.step(&perception, &goal, dt)?;
-        Ok(Some(StepOutput { seq: frame.seq, t_ns: frame.t_ns, dt, flow, perception, goal, mofis }))
+        let m = &calib.mount;
+        let mp = self.memory.params();
+        let (min_radial, max_tangential) = (mp.min_radial_px, mp.max_tangential);
+        self.offis.surface_points([m.x_m, m.y_m, m.z_m], min_radial, max_tangential, &mut self.points);
+        self.memory.update(odometry, dt, &self.points);
+        let avoided = self.memory.threat();
+        // turns on the spot keep their angle; driving picks a free heading
+        let steered = match goal.velocity > 0.0 {
+            true => Goal {
+                angle_rad: self.memory.steer(goal.angle_rad, STEER_LOOKAHEAD_M, STEER_MAX_RAD, STEER_STEP_RAD),
+                ..goal
+            },
+            false => goal,
+        };
+        let mofis = self.mofis.step(&Perception { obstacle: avoided, ..perception.clone() }, &steered, dt)?;
+        Ok(Some(StepOutput { seq: frame.seq, t_ns: frame.t_ns, dt, flow, perception, avoided, goal, mofis }))
     }
 
     fn calib_for(&mut self, frame: &Frame) -> Calibration {

@@ -15,6 +15,8 @@
 //! and the [`Limiter`] clamps the result to the configured speed, turn-rate and acceleration
 //! limits. Without perception ([`Mofis::fallback`]) the set-point is an immediate stop.
 
+pub mod memory;
+
 use crate::config::ConfigError;
 use crate::control::{ControlLimits, Limiter};
 use crate::fuzzy::{Evaluation, FuzzyError, FuzzySystem, InputId, OutputId};
@@ -41,6 +43,9 @@ pub struct MofisParams {
     pub unknown_obstacle_distance_m: f64,
     /// An obstacle within this bearing of dead ahead is passed on the goal's side, rad.
     pub dead_ahead_rad: f64,
+    /// `[mofis.memory]`: the obstacle memory that turns OFFIS's surface points into the
+    /// obstacle avoided ([`memory`]).
+    pub memory: memory::MemoryParams,
 }
 
 impl Default for MofisParams {
@@ -51,6 +56,7 @@ impl Default for MofisParams {
             sensing_range_m: 5.0,
             unknown_obstacle_distance_m: 1.5,
             dead_ahead_rad: 0.05,
+            memory: memory::MemoryParams::default(),
         }
     }
 }
@@ -72,6 +78,9 @@ impl MofisParams {
         }
         if !(self.dead_ahead_rad.is_finite() && (0.0..0.5).contains(&self.dead_ahead_rad)) {
             return bad("dead_ahead_rad", "must be in [0, 0.5) rad");
+        }
+        if let Err((field, problem)) = self.memory.check() {
+            return bad(&format!("memory.{field}"), problem);
         }
         Ok(())
     }

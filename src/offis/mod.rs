@@ -25,6 +25,7 @@ pub mod classify;
 pub mod features;
 pub mod geometry;
 pub mod planes;
+pub mod points;
 pub mod quadrants;
 pub mod structure;
 pub mod synth;

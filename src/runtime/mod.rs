@@ -615,6 +615,8 @@ fn step_loop(
     logger: Option<&LogHandle>,
 ) {
     let mut stalled = false;
+    // the capture time of the last frame stepped: the older frame of the next pair
+    let mut prev_t_ns: Option<u64> = None;
     loop {
         let frame = match shared.slot.take(stall) {
             Taken::Frame(f) => f,
@@ -635,12 +637,14 @@ fn step_loop(
             }
         };
         stalled = false;
-        let velocity = shared
-            .odometry
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .for_frame(frame.t_ns)
-            .map_or(BodyVelocity::ZERO, |o| o.velocity);
+        let history = shared.odometry.lock().unwrap_or_else(|e| e.into_inner());
+        let velocity = match prev_t_ns {
+            Some(t0) if t0 < frame.t_ns => history.mean_over(t0, frame.t_ns),
+            _ => history.for_frame(frame.t_ns).map(|o| o.velocity),
+        }
+        .unwrap_or(BodyVelocity::ZERO);
+        drop(history);
+        prev_t_ns = Some(frame.t_ns);
         let (seq, t_ns) = (frame.seq, frame.t_ns);
         if let Some(h) = logger {
             let encoded = shared.encoded.lock().unwrap_or_else(|e| e.into_inner()).take();

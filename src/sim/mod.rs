@@ -358,6 +358,7 @@ pub async fn run(
     let mut pose = start;
     let mut prev_pose = start;
     let mut odometry = BodyVelocity::ZERO;
+    let mut tick_odometry: Vec<BodyVelocity> = Vec::new();
     let (mut odom_seen, mut path_m, mut min_clear) = (0u64, 0.0f64, f64::INFINITY);
     let (mut failsafe_stops, mut frames, mut tpo_frames) = (0u64, 0u64, [0u64; 5]);
     let (mut doors_matched, mut landmarks_missed, mut replans) = (0u64, 0u64, 0u64);
@@ -377,6 +378,7 @@ pub async fn run(
         }
         // Everything the base sent up to now must have come through the driver.
         let sent = server.with_device(|b| b.counters().odom_sent);
+        tick_odometry.clear();
         let deadline = Instant::now() + setup.link_timeout;
         while odom_seen < sent {
             let left = deadline.saturating_duration_since(Instant::now());
@@ -386,7 +388,9 @@ pub async fn run(
             match base.next_event(left).await? {
                 Some(BaseEvent::Odometry(o)) => {
                     odom_seen += 1;
-                    odometry = o.velocity;
+                    // the mean of this frame interval's samples (as `run` does, see
+                    // runtime::odometry)
+                    tick_odometry.push(o.velocity);
                     if let Some(log) = log {
                         log.odometry(&hal::Odometry { t_ns, ..o });
                     }
@@ -400,6 +404,13 @@ pub async fn run(
             }
         }
 
+        if !tick_odometry.is_empty() {
+            let n = tick_odometry.len() as f64;
+            odometry = BodyVelocity::new(
+                tick_odometry.iter().map(|o| o.v).sum::<f64>() / n,
+                tick_odometry.iter().map(|o| o.omega).sum::<f64>() / n,
+            );
+        }
         let p = server.pose();
         pose = Pose::new(p.x, p.y, p.theta);
         let (pose_w, prev_w) = (pose, prev_pose);
@@ -437,6 +448,24 @@ pub async fn run(
                 setpoint
             }
         };
+        if tracing::enabled!(target: "flownav::sim::frames", tracing::Level::TRACE) {
+            if let Some(o) = &last_output {
+                let t = truth.frame(pose);
+                let ob = &o.perception.obstacle;
+                let pts = pipeline.surface_points();
+                let near = pts
+                    .iter()
+                    .map(|p| (p.forward.hypot(p.left), p.left.atan2(p.forward)))
+                    .fold((f64::INFINITY, 0.0), |a, b| if b.0 < a.0 { b } else { a });
+                let odo = odometry;
+                tracing::trace!(
+                    target: "flownav::sim::frames",
+                    "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3}",
+                    pose.x, pose.y, pose.yaw, o.perception.tpo.shape, t.tpo.shape, ob.distance_m, ob.bearing_rad,
+                    t.obstacle.distance_m, t.obstacle.bearing_rad, o.avoided.distance_m, o.avoided.bearing_rad, setpoint.v, setpoint.omega, pts.len(), near.0, near.1, odo.v, odo.omega
+                );
+            }
+        }
         if let Some(p) = pipeline.pafsis_mut() {
             for ev in p.take_events() {
                 use crate::pafsis::PafsisEvent as E;

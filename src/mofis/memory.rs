@@ -1,0 +1,472 @@
+//! The obstacle memory: a small evidence grid on the floor, in the odometry frame, that turns
+//! OFFIS's per-frame surface points into the obstacle MOFIS avoids.
+//!
+//! One frame of block-matching flow locates an obstacle only where its flow is strong and clean
+//! enough, so a single frame's obstacle flickers; and a camera with a 53° field of view loses an
+//! obstacle from sight while the robot is still beside it, exactly when turning back to the goal
+//! would clip it. The memory fixes both, the way a local costmap does on a ROS robot, from
+//! nothing but the flow's located points and the odometry:
+//!
+//! - the robot's pose in its odometry frame is integrated from `(v, ω)` every step;
+//! - each step's points ([`crate::offis::points`]) vote once per `cell_m` cell (several blocks in
+//!   one cell count once), adding 1 to the cell's evidence (capped at `max_evidence`);
+//! - evidence decays with a half-life of `half_life_view_s` where the camera *sees through* the
+//!   cell now (a surface was measured farther away on the cell's bearing: the cell is free), and
+//!   `half_life_aside_s` everywhere else (out of view, or in view but not measured: a close
+//!   textureless face, a bearing with no reliable flow; nothing confirms or clears it); cells
+//!   beyond `max_range_m` are forgotten;
+//! - a cell is *occupied* when its evidence reaches `occupied`: seen in at least two frames.
+//!
+//! The obstacle handed to MOFIS is the most threatening occupied cell: the nearest one in the
+//! robot's path (ahead, within `robot_radius_m + path_margin_m` of the heading line), else the
+//! nearest one close beside the path (within `robot_radius_m + side_margin_m`), with its range
+//! and bearing from the robot's origin. Walls and boxes alike: a wall the robot drives at is in
+//! its path, a corridor wall beside it is not.
+//!
+//! Pure and deterministic: the cells live in a `BTreeMap`, so the same inputs give the same
+//! outputs in the same order (replay is bit-exact).
+
+use crate::offis::points::SurfacePoint;
+use crate::perception::Obstacle;
+use hal::BodyVelocity;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// The `[mofis.memory]` config table.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MemoryParams {
+    /// Side of a grid cell, m.
+    pub cell_m: f64,
+    /// Evidence half-life of a cell in the camera's view, s.
+    pub half_life_view_s: f64,
+    /// Evidence half-life of a cell out of view (beside or behind the robot), s.
+    pub half_life_aside_s: f64,
+    /// Evidence at which a cell is occupied (1 per frame that saw it).
+    pub occupied: f64,
+    /// Evidence cap (how long a solid thing is remembered once out of view).
+    pub max_evidence: f64,
+    /// Cells farther than this from the robot are forgotten, m; also the range within which the
+    /// camera is taken to see a cell in its field of view.
+    pub max_range_m: f64,
+    /// The robot's radius (circumscribed), m.
+    pub robot_radius_m: f64,
+    /// Clearance kept to either side of the robot's path, m.
+    pub path_margin_m: f64,
+    /// Occupied cells within `robot_radius_m + side_margin_m` of the heading line, but outside
+    /// the path, are reported when nothing is in the path (steer away gently), m.
+    pub side_margin_m: f64,
+    /// Cells behind the robot's origin by more than this are ignored for the threat, m.
+    pub behind_m: f64,
+    /// Points are taken in only when the robot travelled at least this far forward over the
+    /// frame interval, m: with less, the flow of anything but the nearest surfaces is below the
+    /// matching noise, and a noise vector reads as a surface close by.
+    pub min_travel_m: f64,
+    /// Points nearer than this to the robot's origin are ignored, m: the camera cannot see
+    /// there (a fixed-focus webcam, a surface inside the robot's footprint), so such a point is
+    /// a mismatched block.
+    pub min_range_m: f64,
+    /// Points are taken from blocks with at least this much radial flow, pixels per frame
+    /// interval ([`crate::offis::Offis::surface_points`]).
+    pub min_radial_px: f64,
+    /// ... and tangential flow at most this fraction of the radial flow.
+    pub max_tangential: f64,
+    /// ... and turned slower than this, rad/s: the odometry's yaw-rate error, left in the flow
+    /// by the de-rotation, grows with the turn rate.
+    pub max_turn_rate: f64,
+}
+
+impl Default for MemoryParams {
+    fn default() -> Self {
+        Self {
+            cell_m: 0.1,
+            half_life_view_s: 0.5,
+            half_life_aside_s: 4.0,
+            occupied: 1.5,
+            max_evidence: 4.0,
+            max_range_m: 4.0,
+            robot_radius_m: 0.18,
+            path_margin_m: 0.12,
+            side_margin_m: 0.3,
+            behind_m: 0.2,
+            min_travel_m: 0.006,
+            min_range_m: 0.3,
+            min_radial_px: 0.8,
+            max_tangential: 0.5,
+            max_turn_rate: 0.3,
+        }
+    }
+}
+
+impl MemoryParams {
+    /// Range checks; `Err((field, problem))` names the field under `mofis.memory.`.
+    pub fn check(&self) -> Result<(), (&'static str, &'static str)> {
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        let nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        let checks = [
+            ("cell_m", pos(self.cell_m) && self.cell_m <= 1.0, "must be in (0, 1] m"),
+            ("half_life_view_s", pos(self.half_life_view_s), "must be a positive time in s"),
+            ("half_life_aside_s", pos(self.half_life_aside_s), "must be a positive time in s"),
+            ("occupied", pos(self.occupied), "must be a positive evidence (frames)"),
+            ("max_evidence", self.max_evidence.is_finite() && self.max_evidence >= self.occupied, "must be ≥ occupied"),
+            ("max_range_m", pos(self.max_range_m), "must be a positive distance in m"),
+            ("robot_radius_m", pos(self.robot_radius_m), "must be a positive distance in m"),
+            ("path_margin_m", nonneg(self.path_margin_m), "must be a distance ≥ 0 in m"),
+            ("side_margin_m", nonneg(self.side_margin_m), "must be a distance ≥ 0 in m"),
+            ("behind_m", nonneg(self.behind_m), "must be a distance ≥ 0 in m"),
+            ("min_travel_m", nonneg(self.min_travel_m), "must be a distance ≥ 0 in m"),
+            ("min_radial_px", nonneg(self.min_radial_px), "must be ≥ 0 pixels"),
+            ("max_tangential", pos(self.max_tangential), "must be a positive fraction"),
+            ("min_range_m", nonneg(self.min_range_m), "must be a distance ≥ 0 in m"),
+            ("max_turn_rate", pos(self.max_turn_rate), "must be a positive turn rate in rad/s"),
+        ];
+        match checks.iter().find(|(_, ok, _)| !ok) {
+            Some((field, _, problem)) => Err((field, problem)),
+            None => Ok(()),
+        }
+    }
+}
+
+/// The robot's pose in the memory's (odometry) frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Pose {
+    x: f64,
+    y: f64,
+    yaw: f64,
+}
+
+/// The evidence grid and the robot's pose in it.
+#[derive(Clone, Debug)]
+pub struct ObstacleMemory {
+    params: MemoryParams,
+    /// Half of the camera's horizontal field of view, rad.
+    half_fov_rad: f64,
+    pose: Pose,
+    cells: BTreeMap<(i32, i32), f64>,
+    touched: Vec<(i32, i32)>,
+    /// Farthest range measured this step per bearing sector, m.
+    seen: Vec<f64>,
+}
+
+/// Bearing sectors across the field of view for the seen-through test.
+const SECTORS: usize = 24;
+
+/// The sector of `bearing` within a field of view of `±half_fov`, if inside.
+fn sector(bearing: f64, half_fov: f64) -> Option<usize> {
+    let x = (bearing + half_fov) / (2.0 * half_fov) * SECTORS as f64;
+    (x >= 0.0 && x < SECTORS as f64).then(|| x as usize)
+}
+
+impl ObstacleMemory {
+    /// A memory for a camera whose horizontal field of view is `2 · half_fov_rad`.
+    pub fn new(params: MemoryParams, half_fov_rad: f64) -> Self {
+        Self {
+            params,
+            half_fov_rad,
+            pose: Pose::default(),
+            cells: BTreeMap::new(),
+            touched: Vec::new(),
+            seen: Vec::new(),
+        }
+    }
+
+    pub fn params(&self) -> &MemoryParams {
+        &self.params
+    }
+
+    /// Forgets everything (a new mission, a gap in perception longer than the memory is good for).
+    pub fn clear(&mut self) {
+        self.cells.clear();
+    }
+
+    /// Occupied cells, robot frame (forward, left), m: for logging and tests.
+    pub fn occupied(&self) -> Vec<[f64; 2]> {
+        self.cells.iter().filter(|(_, e)| **e >= self.params.occupied).map(|(k, _)| self.to_robot(*k)).collect()
+    }
+
+    /// Whether a step with odometry `odo` over `dt` seconds measures anything: forward travel of
+    /// at least `min_travel_m`, turn rate at most `max_turn_rate`.
+    pub fn measurable(&self, odo: BodyVelocity, dt: f64) -> bool {
+        odo.v * dt >= self.params.min_travel_m && odo.omega.abs() <= self.params.max_turn_rate
+    }
+
+    /// One step: move by the odometry `odo` held over `dt` seconds, decay, then add the `points`
+    /// seen at the new pose (robot frame). In a step that is not [`measurable`](Self::measurable)
+    /// the points are ignored and the cells in view fade only at the out-of-view rate (the
+    /// camera could not have confirmed them).
+    pub fn update(&mut self, odo: BodyVelocity, dt: f64, points: &[SurfacePoint]) {
+        let measurable = self.measurable(odo, dt);
+        if dt.is_finite() && dt > 0.0 && odo.v.is_finite() && odo.omega.is_finite() {
+            let mid = self.pose.yaw + 0.5 * odo.omega * dt;
+            self.pose.x += odo.v * dt * mid.cos();
+            self.pose.y += odo.v * dt * mid.sin();
+            self.pose.yaw = crate::pafsis::map::wrap_angle(self.pose.yaw + odo.omega * dt);
+            let p = self.params;
+            let (k_view, k_aside) = (0.5f64.powf(dt / p.half_life_view_s), 0.5f64.powf(dt / p.half_life_aside_s));
+            let (half_fov, cell) = (self.half_fov_rad, p.cell_m);
+            // how far the camera saw along each bearing sector this step
+            self.seen.clear();
+            self.seen.resize(SECTORS, 0.0);
+            if measurable {
+                for pt in points {
+                    if let Some(k) = sector(pt.left.atan2(pt.forward), half_fov) {
+                        self.seen[k] = self.seen[k].max(pt.forward.hypot(pt.left));
+                    }
+                }
+            }
+            let (pose, seen) = (self.pose, &self.seen);
+            self.cells.retain(|&(i, j), e| {
+                let [f, l] = robot_frame(pose, cell, (i, j));
+                let range = f.hypot(l);
+                // seen through: the camera measured a surface beyond the cell on its bearing
+                let through = f > 0.0 && sector(l.atan2(f), half_fov).is_some_and(|k| seen[k] > range + p.cell_m * 2.0);
+                *e *= if through { k_view } else { k_aside };
+                range <= p.max_range_m && *e >= 0.05
+            });
+        }
+        self.touched.clear();
+        let (s, c) = self.pose.yaw.sin_cos();
+        for pt in points.iter().filter(|_| measurable) {
+            let range = pt.forward.hypot(pt.left);
+            if !(range >= self.params.min_range_m && range <= self.params.max_range_m) {
+                continue;
+            }
+            let x = self.pose.x + c * pt.forward - s * pt.left;
+            let y = self.pose.y + s * pt.forward + c * pt.left;
+            let key = ((x / self.params.cell_m).floor() as i32, (y / self.params.cell_m).floor() as i32);
+            self.touched.push(key);
+        }
+        self.touched.sort_unstable();
+        self.touched.dedup();
+        for key in &self.touched {
+            let e = self.cells.entry(*key).or_insert(0.0);
+            *e = (*e + 1.0).min(self.params.max_evidence);
+        }
+    }
+
+    /// The most threatening occupied cell as an obstacle for MOFIS (module doc); `present:
+    /// false` when none is in or beside the path.
+    pub fn threat(&self) -> Obstacle {
+        let p = &self.params;
+        let path = p.robot_radius_m + p.path_margin_m;
+        let side = p.robot_radius_m + p.side_margin_m;
+        let mut in_path: Option<(f64, [f64; 2])> = None;
+        let mut beside: Option<(f64, [f64; 2])> = None;
+        for (key, e) in &self.cells {
+            if *e < p.occupied {
+                continue;
+            }
+            let [f, l] = self.to_robot(*key);
+            if f < -p.behind_m {
+                continue;
+            }
+            let range = f.hypot(l);
+            if l.abs() <= path && f > 0.0 {
+                if in_path.is_none_or(|(d, _)| f < d) {
+                    in_path = Some((f, [f, l]));
+                }
+            } else if l.abs() <= side && beside.is_none_or(|(d, _)| range < d) {
+                beside = Some((range, [f, l]));
+            }
+        }
+        match in_path.or(beside) {
+            Some((_, [f, l])) => Obstacle {
+                present: true,
+                distance_m: Some((f.hypot(l) - p.robot_radius_m).max(0.0)),
+                bearing_rad: Some(l.atan2(f)),
+                cell: None,
+            },
+            None => Obstacle::default(),
+        }
+    }
+
+    /// How far the robot can drive along `heading` (rad, robot frame, + left) before its
+    /// footprint widened by `path_margin_m` meets an occupied cell, up to `lookahead_m`.
+    pub fn free_distance(&self, heading: f64, lookahead_m: f64) -> f64 {
+        let p = &self.params;
+        let half = p.robot_radius_m + p.path_margin_m;
+        let (s, c) = heading.sin_cos();
+        let mut free = lookahead_m;
+        for (key, e) in &self.cells {
+            if *e < p.occupied {
+                continue;
+            }
+            let [f, l] = self.to_robot(*key);
+            let along = f * c + l * s;
+            let across = (-f * s + l * c).abs();
+            if across <= half && along > -p.behind_m {
+                free = free.min(along.max(0.0));
+            }
+        }
+        free
+    }
+
+    /// The heading to drive instead of `goal_rad` (both rad, robot frame): `goal_rad` itself when
+    /// its path is free for `lookahead_m`, else the candidate within `±max_rad` (steps of
+    /// `step_rad`) nearest to the goal whose path is free that far, else the candidate with the
+    /// longest free path (nearest to the goal on a tie). A vector-field-histogram-style
+    /// choice of gap; MOFIS still slows and swerves for what is close.
+    pub fn steer(&self, goal_rad: f64, lookahead_m: f64, max_rad: f64, step_rad: f64) -> f64 {
+        if self.free_distance(goal_rad, lookahead_m) >= lookahead_m {
+            return goal_rad;
+        }
+        let n = (max_rad / step_rad).round() as i32;
+        let mut best: Option<(bool, f64, f64)> = None; // (free enough, free distance, heading)
+        for k in -n..=n {
+            let h = k as f64 * step_rad;
+            let free = self.free_distance(h, lookahead_m);
+            let ok = free >= lookahead_m;
+            let better = match best {
+                None => true,
+                Some((bok, bfree, bh)) => match (ok, bok) {
+                    (true, false) => true,
+                    (false, true) => false,
+                    (true, true) => (h - goal_rad).abs() < (bh - goal_rad).abs(),
+                    (false, false) => {
+                        free > bfree + 1e-9
+                            || ((free - bfree).abs() <= 1e-9 && (h - goal_rad).abs() < (bh - goal_rad).abs())
+                    }
+                },
+            };
+            if better {
+                best = Some((ok, free, h));
+            }
+        }
+        best.map_or(goal_rad, |(_, _, h)| h)
+    }
+
+    /// Centre of cell `key`, robot frame.
+    fn to_robot(&self, key: (i32, i32)) -> [f64; 2] {
+        robot_frame(self.pose, self.params.cell_m, key)
+    }
+}
+
+fn robot_frame(pose: Pose, cell: f64, (i, j): (i32, i32)) -> [f64; 2] {
+    let (x, y) = ((i as f64 + 0.5) * cell - pose.x, (j as f64 + 0.5) * cell - pose.y);
+    let (s, c) = pose.yaw.sin_cos();
+    [c * x + s * y, -s * x + c * y]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pt(forward: f64, left: f64) -> SurfacePoint {
+        SurfacePoint { forward, left }
+    }
+
+    /// The default memory, except that standing still counts as measurable (so the geometry
+    /// below is exact).
+    fn memory() -> ObstacleMemory {
+        ObstacleMemory::new(MemoryParams { min_travel_m: 0.0, ..MemoryParams::default() }, 26.7f64.to_radians())
+    }
+
+    const STILL: BodyVelocity = BodyVelocity { v: 0.0, omega: 0.0 };
+
+    #[test]
+    fn one_frame_is_not_enough_two_are() {
+        let mut m = memory();
+        m.update(STILL, 0.1, &[pt(1.0, 0.05), pt(1.01, 0.04)]);
+        assert!(!m.threat().present, "a single frame (two blocks in one cell) must not make an obstacle");
+        m.update(STILL, 0.1, &[pt(1.0, 0.05)]);
+        let o = m.threat();
+        assert!(o.present);
+        // cell centre (1.05, 0.05): its range minus the 0.18 m radius
+        assert!((o.distance_m.unwrap() - (1.05f64.hypot(0.05) - 0.18)).abs() < 1e-9, "{o:?}");
+        assert!((o.bearing_rad.unwrap() - 0.05f64.atan2(1.05)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn nothing_is_taken_in_while_creeping_or_turning_fast() {
+        let mut m = ObstacleMemory::new(MemoryParams::default(), 0.47);
+        let creep = BodyVelocity { v: 0.05, omega: 0.0 }; // 5 mm in 0.1 s < 6 mm
+        let spin = BodyVelocity { v: 0.3, omega: 0.5 };
+        assert!(!m.measurable(creep, 0.1) && !m.measurable(spin, 0.1));
+        assert!(m.measurable(BodyVelocity { v: 0.3, omega: 0.1 }, 0.1));
+        for odo in [creep, spin, creep] {
+            m.update(odo, 0.1, &[pt(1.0, 0.0)]);
+        }
+        assert!(m.occupied().is_empty());
+    }
+
+    #[test]
+    fn in_path_wins_over_nearer_beside_and_walls_aside_are_ignored() {
+        // a corridor wall 1 m to the left, a box 0.4 m right of the heading at 0.8 m, and a box
+        // in the path at 1.5 m
+        let frame = [pt(0.5, 1.0), pt(1.0, 1.0), pt(0.8, -0.4), pt(1.5, 0.1)];
+        let run = |points: &[SurfacePoint]| {
+            let mut m = memory();
+            for _ in 0..3 {
+                m.update(STILL, 0.1, points);
+            }
+            m.threat()
+        };
+        let o = run(&frame);
+        assert!((o.bearing_rad.unwrap() - 0.15f64.atan2(1.55)).abs() < 1e-9, "the in-path box: {o:?}");
+        // without the in-path box: the one beside the path (0.4 m < 0.18 + 0.3), to the right
+        let o = run(&frame[..3]);
+        assert!(o.bearing_rad.unwrap() < 0.0 && o.distance_m.unwrap() < 0.8, "{o:?}");
+        // the wall alone is no threat
+        assert!(!run(&frame[..2]).present);
+    }
+
+    #[test]
+    fn steers_to_the_nearest_free_heading() {
+        let mut m = memory();
+        // a 0.6 m wide box 1 m ahead, from 0.1 m left to 0.5 m right of the heading
+        let bx: Vec<SurfacePoint> = (0..7).map(|k| pt(1.0, 0.1 - 0.1 * k as f64)).collect();
+        for _ in 0..3 {
+            m.update(STILL, 0.1, &bx);
+        }
+        assert!((m.free_distance(0.0, 1.5) - 1.05).abs() < 1e-9, "the box's cells start at 1.0 m");
+        let h = m.steer(0.0, 1.5, 0.7, 0.05);
+        assert!(h > 0.0, "pass on the left, the short way round: {h}");
+        assert!(m.free_distance(h, 1.5) >= 1.5);
+        // a free goal direction is kept
+        assert_eq!(m.steer(0.6, 1.5, 0.7, 0.05), 0.6);
+    }
+
+    #[test]
+    fn remembers_an_obstacle_out_of_view_and_moves_it_with_the_robot() {
+        let mut m = memory();
+        for _ in 0..4 {
+            m.update(STILL, 0.1, &[pt(1.0, 0.35)]);
+        }
+        // drive 1 m straight in 10 steps seeing nothing: the box is now beside the robot, out of
+        // view (90°), still remembered, 0.35 m to the left
+        let v = BodyVelocity { v: 1.0, omega: 0.0 };
+        for _ in 0..10 {
+            m.update(v, 0.1, &[]);
+        }
+        let cells = m.occupied();
+        assert_eq!(cells.len(), 1);
+        assert!((cells[0][0] - 0.05).abs() < 1e-9 && (cells[0][1] - 0.35).abs() < 1e-9, "{cells:?}");
+        let o = m.threat();
+        assert!(o.present && o.bearing_rad.unwrap() > 1.0, "beside the path, to the left: {o:?}");
+        // turning left 90° on the spot puts it ahead, in the path
+        let turn = BodyVelocity { v: 0.0, omega: std::f64::consts::FRAC_PI_2 };
+        m.update(turn, 1.0, &[]);
+        let o = m.threat();
+        assert!(o.bearing_rad.unwrap().abs() < 0.2, "{o:?}");
+    }
+
+    #[test]
+    fn a_cell_seen_through_fades_fast_one_not_seen_slowly() {
+        let p = MemoryParams::default();
+        let mut m = memory();
+        for _ in 0..4 {
+            m.update(STILL, 0.1, &[pt(1.0, 0.0), pt(1.0, 0.35)]);
+        }
+        // 1 s in which the camera sees a wall 3 m away behind the first cell only (same bearing
+        // sector as the cell centre (1.05, 0.05)): that cell
+        // loses 2 half-lives of evidence, the other a quarter of one
+        for _ in 0..10 {
+            m.update(STILL, 0.1, &[pt(3.0, 0.15)]);
+        }
+        let near: Vec<[f64; 2]> = m.occupied().into_iter().filter(|c| c[0] < 2.0).collect();
+        assert_eq!(near.len(), 1, "{near:?}");
+        assert!(near[0][1] > 0.25, "the cell not seen through survives: {near:?}");
+        assert!(p.check().is_ok());
+        assert_eq!(MemoryParams { occupied: 5.0, ..p }.check(), Err(("max_evidence", "must be ≥ occupied")));
+    }
+}
