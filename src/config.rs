@@ -25,6 +25,8 @@ pub enum ConfigError {
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     pub flow: FlowParams,
+    /// `[pairing]`: which earlier frame each frame is paired with for the flow.
+    pub pairing: crate::step::PairingParams,
     pub offis: OffisParams,
     pub pafsis: PafsisParams,
     pub mofis: MofisParams,
@@ -52,6 +54,7 @@ impl Config {
     pub fn validate(&self) -> Result<(), ConfigError> {
         self.flow.validate()?;
         self.pafsis.validate()?;
+        self.pairing.validate()?;
         self.mofis.validate()?;
         self.control.validate()?;
         self.base.validate()?;

@@ -5,9 +5,18 @@
 //! function, so what is tested offline is what drives the robot, and replaying a log through it
 //! reproduces the logged outputs bit for bit on the CPU backend.
 //!
-//! Order inside a step (paper Fig. 3): flow (frame pair) → OFFIS (perception) → PAFSIS (goal
-//! velocity and angle, or a constant cruise goal without a mission) → MOFIS (avoidance, fusion,
-//! limiter) → set-point.
+//! Order inside a step (paper Fig. 3): flow (frame pair) → OFFIS (perception) → obstacle memory
+//! → PAFSIS (goal velocity and angle, or a constant cruise goal without a mission) → free-heading
+//! steering → MOFIS (avoidance, fusion, limiter) → set-point.
+//!
+//! **Pairing (keyframes).** Depth from flow needs the camera to have moved: at 30 fps a robot at
+//! 0.1 m/s moves 3 mm between frames, and the flow of a wall 2 m away is a tenth of a pixel,
+//! below the matching noise. So each frame is paired with a *keyframe*, the older frame of the
+//! pair, which is kept until the robot has driven `pairing.min_baseline_m` since it (or
+//! `pairing.max_span_s` passed); then the newest frame becomes the keyframe. Every frame still
+//! gets a step and a set-point; OFFIS gets the pair's whole interval and the odometry averaged
+//! over it, the obstacle memory and PAFSIS the per-frame odometry. At cruise speed this is
+//! every second frame, when creeping every frame of the last `max_span_s`.
 
 use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
@@ -51,12 +60,58 @@ const STEER_LOOKAHEAD_M: f64 = 1.5;
 const STEER_MAX_RAD: f64 = 0.7;
 const STEER_STEP_RAD: f64 = 0.05;
 
+/// The `[pairing]` config table: how far back the older frame of each pair lies.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PairingParams {
+    /// The keyframe is replaced once the robot has driven this far since it, m (0: pair
+    /// consecutive frames, as the paper does).
+    pub min_baseline_m: f64,
+    /// ... or once it is this old, s.
+    pub max_span_s: f64,
+}
+
+impl Default for PairingParams {
+    fn default() -> Self {
+        Self { min_baseline_m: 0.02, max_span_s: 0.4 }
+    }
+}
+
+impl PairingParams {
+    pub fn validate(&self) -> Result<(), crate::config::ConfigError> {
+        let bad = |field: &str, problem: &str| {
+            Err(crate::config::ConfigError::Invalid { field: format!("pairing.{field}"), problem: problem.into() })
+        };
+        if !(self.min_baseline_m.is_finite() && (0.0..=0.5).contains(&self.min_baseline_m)) {
+            return bad("min_baseline_m", "must be in [0, 0.5] m");
+        }
+        if !(self.max_span_s.is_finite() && self.max_span_s > 0.0 && self.max_span_s <= 5.0) {
+            return bad("max_span_s", "must be in (0, 5] s");
+        }
+        Ok(())
+    }
+}
+
+/// The keyframe and the motion since it.
+#[derive(Clone, Debug)]
+struct Keyframe {
+    frame: Frame,
+    /// Capture time of the last frame stepped (for the per-frame interval), ns.
+    last_ns: u64,
+    /// Distance driven and yaw turned since the keyframe (odometry), m and rad.
+    travel_m: f64,
+    yaw_rad: f64,
+    /// Largest change of the measured turn rate between two steps since the keyframe, rad/s.
+    turn_change: f64,
+    last_omega: f64,
+}
+
 /// What one step produced (the newer frame of the pair is `seq`, captured at `t_ns`).
 #[derive(Clone, Debug)]
 pub struct StepOutput {
     pub seq: u64,
     pub t_ns: u64,
-    /// Frame interval of the pair, s.
+    /// Interval of the pair (keyframe to this frame), s.
     pub dt: f64,
     pub flow: FlowField,
     pub perception: Perception,
@@ -94,7 +149,10 @@ pub struct Pipeline {
     mofis: Mofis,
     memory: ObstacleMemory,
     points: Vec<SurfacePoint>,
-    prev: Option<Frame>,
+    pairing: PairingParams,
+    key: Option<Keyframe>,
+    /// MOFIS's sensing range (the free path is measured up to it), m.
+    mofis_range: f64,
 }
 
 impl Pipeline {
@@ -114,12 +172,14 @@ impl Pipeline {
             frame_calib: None,
             memory,
             points: Vec::new(),
+            pairing: cfg.pairing,
+            key: None,
+            mofis_range: cfg.mofis.sensing_range_m,
             flow,
             backend,
             offis: Offis::new(cfg.offis.clone())?,
             navigator,
             mofis,
-            prev: None,
         })
     }
 
@@ -167,7 +227,7 @@ impl Pipeline {
     /// A zero set-point through the limiter's stop path (for stalls and failures); also forgets
     /// the previous frame so the next pair does not span the gap.
     pub fn fail_safe(&mut self) -> BodyVelocity {
-        self.prev = None;
+        self.key = None;
         self.memory.clear();
         self.mofis.fallback()
     }
@@ -178,26 +238,59 @@ impl Pipeline {
     /// becomes the previous frame so the next pair can succeed.
     pub fn step(&mut self, frame: Frame, odometry: BodyVelocity) -> Result<Option<StepOutput>, StepError> {
         let calib = self.calib_for(&frame);
-        let Some(prev) = self.prev.replace(frame) else {
+        let Some(key) = &mut self.key else {
+            let last_ns = frame.t_ns;
+            self.key = Some(Keyframe {
+                frame,
+                last_ns,
+                travel_m: 0.0,
+                yaw_rad: 0.0,
+                turn_change: 0.0,
+                last_omega: odometry.omega,
+            });
             return Ok(None);
         };
-        let frame = self.prev.as_ref().expect("just stored");
-        if frame.t_ns <= prev.t_ns {
-            let err = StepError::Time { seq: frame.seq, t_ns: frame.t_ns, prev_ns: prev.t_ns };
+        if frame.t_ns <= key.last_ns {
+            let err = StepError::Time { seq: frame.seq, t_ns: frame.t_ns, prev_ns: key.last_ns };
+            // the frame still becomes the start of the next pair
+            self.key = None;
+            self.step(frame, odometry)?;
             return Err(err);
         }
-        let dt = (frame.t_ns - prev.t_ns) as f64 * 1e-9;
-        let flow = self.flow.compute(&prev.image, &frame.image)?.clone();
-        let perception = self.offis.step(&flow, odometry, dt, &calib)?;
+        let frame_dt = (frame.t_ns - key.last_ns) as f64 * 1e-9;
+        key.last_ns = frame.t_ns;
+        if odometry.v.is_finite() && odometry.omega.is_finite() {
+            key.travel_m += odometry.v * frame_dt;
+            key.yaw_rad += odometry.omega * frame_dt;
+            key.turn_change = key.turn_change.max((odometry.omega - key.last_omega).abs());
+            key.last_omega = odometry.omega;
+        }
+        let dt = (frame.t_ns - key.frame.t_ns) as f64 * 1e-9;
+        // the pair's motion as one constant velocity over its interval
+        let span = BodyVelocity::new(key.travel_m / dt, key.yaw_rad / dt);
+        let flow = self.flow.compute(&key.frame.image, &frame.image)?.clone();
+        let perception = self.offis.step(&flow, span, dt, &calib)?;
+        let measured = self.memory.measurable(span, dt, key.turn_change);
+        let (seq, t_ns) = (frame.seq, frame.t_ns);
+        if key.travel_m.abs() >= self.pairing.min_baseline_m || dt >= self.pairing.max_span_s {
+            *key = Keyframe {
+                frame,
+                last_ns: t_ns,
+                travel_m: 0.0,
+                yaw_rad: 0.0,
+                turn_change: 0.0,
+                last_omega: odometry.omega,
+            };
+        }
         let goal = match &mut self.navigator {
-            Navigator::Mission(pafsis) => pafsis.step(&perception, odometry, dt),
+            Navigator::Mission(pafsis) => pafsis.step(&perception, odometry, frame_dt),
             Navigator::Cruise(v) => Goal { velocity: *v, angle_rad: 0.0, status: GoalStatus::Active },
         };
         let m = &calib.mount;
         let mp = self.memory.params();
         let (min_radial, max_tangential) = (mp.min_radial_px, mp.max_tangential);
         self.offis.surface_points([m.x_m, m.y_m, m.z_m], min_radial, max_tangential, &mut self.points);
-        self.memory.update(odometry, dt, &self.points);
+        self.memory.update(odometry, frame_dt, &self.points, measured);
         let avoided = self.memory.threat();
         // turns on the spot keep their angle; driving picks a free heading
         let steered = match goal.velocity > 0.0 {
@@ -207,8 +300,12 @@ impl Pipeline {
             },
             false => goal,
         };
-        let mofis = self.mofis.step(&Perception { obstacle: avoided, ..perception.clone() }, &steered, dt)?;
-        Ok(Some(StepOutput { seq: frame.seq, t_ns: frame.t_ns, dt, flow, perception, avoided, goal, mofis }))
+        // the distance ahead: the free path along the heading in the memory (the TPO's wall
+        // distance is one frame's guess; the memory has what was seen solid, over frames)
+        let front = self.memory.free_distance(0.0, self.mofis_range) - self.memory.params().robot_radius_m;
+        let view = Perception { obstacle: avoided, ..perception.clone() };
+        let mofis = self.mofis.step_with_front(&view, Some(front.max(0.0)), &steered, frame_dt)?;
+        Ok(Some(StepOutput { seq, t_ns, dt, flow, perception, avoided, goal, mofis }))
     }
 
     fn calib_for(&mut self, frame: &Frame) -> Calibration {

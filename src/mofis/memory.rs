@@ -74,6 +74,10 @@ pub struct MemoryParams {
     /// ... and turned slower than this, rad/s: the odometry's yaw-rate error, left in the flow
     /// by the de-rotation, grows with the turn rate.
     pub max_turn_rate: f64,
+    /// ... and with a turn rate that changed by at most this since the previous step, rad/s:
+    /// odometry samples never cover a frame interval exactly, and while the turn rate changes
+    /// the difference is a yaw error (0.1 rad/s over 33 ms is 1 px at 320 px wide).
+    pub max_turn_change: f64,
 }
 
 impl Default for MemoryParams {
@@ -87,13 +91,14 @@ impl Default for MemoryParams {
             max_range_m: 4.0,
             robot_radius_m: 0.18,
             path_margin_m: 0.12,
-            side_margin_m: 0.3,
-            behind_m: 0.2,
+            side_margin_m: 0.15,
+            behind_m: 0.0,
             min_travel_m: 0.006,
-            min_range_m: 0.3,
+            min_range_m: 0.22,
             min_radial_px: 0.8,
             max_tangential: 0.5,
             max_turn_rate: 0.3,
+            max_turn_change: 0.05,
         }
     }
 }
@@ -119,6 +124,7 @@ impl MemoryParams {
             ("max_tangential", pos(self.max_tangential), "must be a positive fraction"),
             ("min_range_m", nonneg(self.min_range_m), "must be a distance ≥ 0 in m"),
             ("max_turn_rate", pos(self.max_turn_rate), "must be a positive turn rate in rad/s"),
+            ("max_turn_change", pos(self.max_turn_change), "must be a positive turn rate in rad/s"),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err((field, problem)),
@@ -184,18 +190,20 @@ impl ObstacleMemory {
         self.cells.iter().filter(|(_, e)| **e >= self.params.occupied).map(|(k, _)| self.to_robot(*k)).collect()
     }
 
-    /// Whether a step with odometry `odo` over `dt` seconds measures anything: forward travel of
-    /// at least `min_travel_m`, turn rate at most `max_turn_rate`.
-    pub fn measurable(&self, odo: BodyVelocity, dt: f64) -> bool {
-        odo.v * dt >= self.params.min_travel_m && odo.omega.abs() <= self.params.max_turn_rate
+    /// Whether a frame pair over `dt` seconds with the mean velocity `span` and a turn rate that
+    /// changed by at most `turn_change` (rad/s) between steps measures anything: forward travel
+    /// of at least `min_travel_m`, turn rate at most `max_turn_rate`, turn-rate change at most
+    /// `max_turn_change`.
+    pub fn measurable(&self, span: BodyVelocity, dt: f64, turn_change: f64) -> bool {
+        let p = &self.params;
+        span.v * dt >= p.min_travel_m && span.omega.abs() <= p.max_turn_rate && turn_change <= p.max_turn_change
     }
 
     /// One step: move by the odometry `odo` held over `dt` seconds, decay, then add the `points`
-    /// seen at the new pose (robot frame). In a step that is not [`measurable`](Self::measurable)
-    /// the points are ignored and the cells in view fade only at the out-of-view rate (the
-    /// camera could not have confirmed them).
-    pub fn update(&mut self, odo: BodyVelocity, dt: f64, points: &[SurfacePoint]) {
-        let measurable = self.measurable(odo, dt);
+    /// seen at the new pose (robot frame). In a step whose pair was not
+    /// [`measurable`](Self::measurable) the points are ignored and the cells in view fade only at
+    /// the out-of-view rate (the camera could not have confirmed them).
+    pub fn update(&mut self, odo: BodyVelocity, dt: f64, points: &[SurfacePoint], measurable: bool) {
         if dt.is_finite() && dt > 0.0 && odo.v.is_finite() && odo.omega.is_finite() {
             let mid = self.pose.yaw + 0.5 * odo.omega * dt;
             self.pose.x += odo.v * dt * mid.cos();
@@ -363,12 +371,18 @@ mod tests {
 
     const STILL: BodyVelocity = BodyVelocity { v: 0.0, omega: 0.0 };
 
+    /// `update` for a pair measured as the memory's own test says.
+    fn step(m: &mut ObstacleMemory, odo: BodyVelocity, dt: f64, points: &[SurfacePoint]) {
+        let measured = m.measurable(odo, dt, 0.0);
+        m.update(odo, dt, points, measured);
+    }
+
     #[test]
     fn one_frame_is_not_enough_two_are() {
         let mut m = memory();
-        m.update(STILL, 0.1, &[pt(1.0, 0.05), pt(1.01, 0.04)]);
+        step(&mut m, STILL, 0.1, &[pt(1.0, 0.05), pt(1.01, 0.04)]);
         assert!(!m.threat().present, "a single frame (two blocks in one cell) must not make an obstacle");
-        m.update(STILL, 0.1, &[pt(1.0, 0.05)]);
+        step(&mut m, STILL, 0.1, &[pt(1.0, 0.05)]);
         let o = m.threat();
         assert!(o.present);
         // cell centre (1.05, 0.05): its range minus the 0.18 m radius
@@ -381,10 +395,12 @@ mod tests {
         let mut m = ObstacleMemory::new(MemoryParams::default(), 0.47);
         let creep = BodyVelocity { v: 0.05, omega: 0.0 }; // 5 mm in 0.1 s < 6 mm
         let spin = BodyVelocity { v: 0.3, omega: 0.5 };
-        assert!(!m.measurable(creep, 0.1) && !m.measurable(spin, 0.1));
-        assert!(m.measurable(BodyVelocity { v: 0.3, omega: 0.1 }, 0.1));
+        assert!(!m.measurable(creep, 0.1, 0.0) && !m.measurable(spin, 0.1, 0.0));
+        assert!(m.measurable(BodyVelocity { v: 0.3, omega: 0.1 }, 0.1, 0.0));
+        // a turn rate that changed by 0.1 rad/s within the pair is not trusted
+        assert!(!m.measurable(BodyVelocity { v: 0.3, omega: 0.1 }, 0.1, 0.1));
         for odo in [creep, spin, creep] {
-            m.update(odo, 0.1, &[pt(1.0, 0.0)]);
+            step(&mut m, odo, 0.1, &[pt(1.0, 0.0)]);
         }
         assert!(m.occupied().is_empty());
     }
@@ -397,7 +413,7 @@ mod tests {
         let run = |points: &[SurfacePoint]| {
             let mut m = memory();
             for _ in 0..3 {
-                m.update(STILL, 0.1, points);
+                step(&mut m, STILL, 0.1, points);
             }
             m.threat()
         };
@@ -416,7 +432,7 @@ mod tests {
         // a 0.6 m wide box 1 m ahead, from 0.1 m left to 0.5 m right of the heading
         let bx: Vec<SurfacePoint> = (0..7).map(|k| pt(1.0, 0.1 - 0.1 * k as f64)).collect();
         for _ in 0..3 {
-            m.update(STILL, 0.1, &bx);
+            step(&mut m, STILL, 0.1, &bx);
         }
         assert!((m.free_distance(0.0, 1.5) - 1.05).abs() < 1e-9, "the box's cells start at 1.0 m");
         let h = m.steer(0.0, 1.5, 0.7, 0.05);
@@ -430,13 +446,13 @@ mod tests {
     fn remembers_an_obstacle_out_of_view_and_moves_it_with_the_robot() {
         let mut m = memory();
         for _ in 0..4 {
-            m.update(STILL, 0.1, &[pt(1.0, 0.35)]);
+            step(&mut m, STILL, 0.1, &[pt(1.0, 0.35)]);
         }
         // drive 1 m straight in 10 steps seeing nothing: the box is now beside the robot, out of
         // view (90°), still remembered, 0.35 m to the left
         let v = BodyVelocity { v: 1.0, omega: 0.0 };
         for _ in 0..10 {
-            m.update(v, 0.1, &[]);
+            step(&mut m, v, 0.1, &[]);
         }
         let cells = m.occupied();
         assert_eq!(cells.len(), 1);
@@ -445,7 +461,7 @@ mod tests {
         assert!(o.present && o.bearing_rad.unwrap() > 1.0, "beside the path, to the left: {o:?}");
         // turning left 90° on the spot puts it ahead, in the path
         let turn = BodyVelocity { v: 0.0, omega: std::f64::consts::FRAC_PI_2 };
-        m.update(turn, 1.0, &[]);
+        step(&mut m, turn, 1.0, &[]);
         let o = m.threat();
         assert!(o.bearing_rad.unwrap().abs() < 0.2, "{o:?}");
     }
@@ -455,13 +471,13 @@ mod tests {
         let p = MemoryParams::default();
         let mut m = memory();
         for _ in 0..4 {
-            m.update(STILL, 0.1, &[pt(1.0, 0.0), pt(1.0, 0.35)]);
+            step(&mut m, STILL, 0.1, &[pt(1.0, 0.0), pt(1.0, 0.35)]);
         }
         // 1 s in which the camera sees a wall 3 m away behind the first cell only (same bearing
         // sector as the cell centre (1.05, 0.05)): that cell
         // loses 2 half-lives of evidence, the other a quarter of one
         for _ in 0..10 {
-            m.update(STILL, 0.1, &[pt(3.0, 0.15)]);
+            step(&mut m, STILL, 0.1, &[pt(3.0, 0.15)]);
         }
         let near: Vec<[f64; 2]> = m.occupied().into_iter().filter(|c| c[0] < 2.0).collect();
         assert_eq!(near.len(), 1, "{near:?}");

@@ -256,7 +256,22 @@ impl Mofis {
     /// result for a step `dt` seconds after the previous one. A goal that is not active (arrived,
     /// failed) brings the robot to a stop within the deceleration limits.
     pub fn step(&mut self, perception: &Perception, goal: &Goal, dt: f64) -> Result<MofisOutput, MofisError> {
-        let inputs = self.inputs(perception);
+        self.step_with_front(perception, None, goal, dt)
+    }
+
+    /// [`Mofis::step`] with the distance ahead measured otherwise (the obstacle memory's free
+    /// path, m) instead of the TPO's wall/corner distance; `None` = from the TPO.
+    pub fn step_with_front(
+        &mut self,
+        perception: &Perception,
+        front_m: Option<f64>,
+        goal: &Goal,
+        dt: f64,
+    ) -> Result<MofisOutput, MofisError> {
+        let mut inputs = self.inputs(perception);
+        if let Some(f) = front_m.filter(|f| f.is_finite()) {
+            inputs[2] = f.clamp(0.0, self.params.sensing_range_m);
+        }
         let [dist, mut bearing, front] = inputs;
         // A dead-ahead obstacle gives the symmetric rule base no side: pass it on the goal's
         // side, and keep that side while the obstacle stays in view (no dithering).
