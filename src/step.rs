@@ -59,6 +59,12 @@ pub enum PipelineError {
 const STEER_LOOKAHEAD_M: f64 = 1.5;
 const STEER_MAX_RAD: f64 = 0.7;
 const STEER_STEP_RAD: f64 = 0.05;
+/// Keeping off side surfaces ([`ObstacleMemory::centring`]): cells up to this far ahead and this
+/// far to the side count, m; the correction's lookahead, m, and its largest angle, rad.
+const CENTRE_WINDOW_M: f64 = 1.5;
+const CENTRE_REACH_M: f64 = 0.9;
+const CENTRE_LOOKAHEAD_M: f64 = 1.5;
+const CENTRE_MAX_RAD: f64 = 0.3;
 
 /// The `[pairing]` config table: how far back the older frame of each pair lies.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -294,10 +300,11 @@ impl Pipeline {
         let avoided = self.memory.threat();
         // turns on the spot keep their angle; driving picks a free heading
         let steered = match goal.velocity > 0.0 {
-            true => Goal {
-                angle_rad: self.memory.steer(goal.angle_rad, STEER_LOOKAHEAD_M, STEER_MAX_RAD, STEER_STEP_RAD),
-                ..goal
-            },
+            true => {
+                let centred = goal.angle_rad
+                    + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
+                Goal { angle_rad: self.memory.steer(centred, STEER_LOOKAHEAD_M, STEER_MAX_RAD, STEER_STEP_RAD), ..goal }
+            }
             false => goal,
         };
         // the distance ahead: the free path along the heading in the memory (the TPO's wall

@@ -41,7 +41,7 @@ pub struct Args {
     #[arg(long, default_value_t = 30.0)]
     pub fps: f64,
     /// Give up after this much simulated time, s.
-    #[arg(long, default_value_t = 120.0, value_name = "S")]
+    #[arg(long, default_value_t = 180.0, value_name = "S")]
     pub max_time: f64,
     /// Render size WxH (the calibration's intrinsics are scaled to it).
     #[arg(long, value_name = "WxH", value_parser = parse_size, default_value = "320x180")]

@@ -343,6 +343,33 @@ impl ObstacleMemory {
         best.map_or(goal_rad, |(_, _, h)| h)
     }
 
+    /// A heading correction that keeps the robot off side surfaces, rad (+ left): the nearest
+    /// occupied cells on each side within `window_m` ahead and `reach_m` to the side give the
+    /// clearances `l` and `r`; when the smaller is below `reach_m`, the robot steers toward the
+    /// middle, `atan2((l − r) / 2, lookahead_m)`, at most `max_rad`. A side with nothing seen
+    /// counts as `reach_m` away. In a corridor this centres the robot, in a doorway too.
+    pub fn centring(&self, window_m: f64, reach_m: f64, lookahead_m: f64, max_rad: f64) -> f64 {
+        let (mut left, mut right) = (reach_m, reach_m);
+        for (key, e) in &self.cells {
+            if *e < self.params.occupied {
+                continue;
+            }
+            let [f, l] = self.to_robot(*key);
+            if !(0.0..=window_m).contains(&f) {
+                continue;
+            }
+            if l > 0.0 {
+                left = left.min(l);
+            } else {
+                right = right.min(-l);
+            }
+        }
+        if left.min(right) >= reach_m {
+            return 0.0;
+        }
+        (0.5 * (left - right)).atan2(lookahead_m).clamp(-max_rad, max_rad)
+    }
+
     /// Centre of cell `key`, robot frame.
     fn to_robot(&self, key: (i32, i32)) -> [f64; 2] {
         robot_frame(self.pose, self.params.cell_m, key)
@@ -440,6 +467,22 @@ mod tests {
         assert!(m.free_distance(h, 1.5) >= 1.5);
         // a free goal direction is kept
         assert_eq!(m.steer(0.6, 1.5, 0.7, 0.05), 0.6);
+    }
+
+    #[test]
+    fn centring_steers_away_from_the_nearer_side() {
+        let mut m = memory();
+        // walls 0.35 m left and 0.95 m right, 0.5..1.5 m ahead
+        let walls: Vec<SurfacePoint> =
+            (0..10).flat_map(|k| [pt(0.5 + 0.1 * k as f64, 0.35), pt(0.5 + 0.1 * k as f64, -0.95)]).collect();
+        for _ in 0..3 {
+            step(&mut m, STILL, 0.1, &walls);
+        }
+        // cell centres at 0.35 left and 0.95 right: (0.35 − 0.95) / 2 = −0.3 m off the middle
+        let c = m.centring(1.5, 1.0, 2.0, 0.3);
+        assert!((c - (-0.3f64).atan2(2.0)).abs() < 1e-9, "{c}");
+        // nothing within reach: no correction
+        assert_eq!(m.centring(1.5, 0.3, 2.0, 0.3), 0.0);
     }
 
     #[test]

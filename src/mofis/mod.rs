@@ -294,7 +294,12 @@ impl Mofis {
             self.fusion_buf[id.0] = v;
         }
         self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
-        let weight = self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0);
+        // a turn on the spot (goal velocity 0) cannot run the round robot into anything: the
+        // goal's turn alone
+        let weight = match goal.velocity > 0.0 {
+            true => self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0),
+            false => 0.0,
+        };
 
         let fused = if goal.status == GoalStatus::Active {
             let max_turn = self.limiter.limits().max_turn_rate;

@@ -108,7 +108,7 @@ impl SimSetup {
             fps: 30.0,
             noise_sigma: 0.0,
             seed: 0,
-            max_time_s: 120.0,
+            max_time_s: 180.0,
             realtime: false,
             robot_radius_m: ROBOT_RADIUS_M,
             goal_tolerance_m: GOAL_TOLERANCE_M,
