@@ -57,7 +57,7 @@ impl Default for PafsisParams {
             stop_distance_m: 0.8,
             landmark_min_confidence: 0.5,
             landmark_min_frames: 2,
-            landmark_gate_m: 1.0,
+            landmark_gate_m: 0.5,
             door_max_range_m: 5.0,
             miss_factor: 1.5,
             max_replans: 3,
