@@ -344,7 +344,8 @@ impl ObstacleMemory {
     }
 
     /// A heading correction that keeps the robot off side surfaces, rad (+ left): the nearest
-    /// occupied cells on each side within `window_m` ahead and `reach_m` to the side give the
+    /// occupied cells on each side from the robot's back (`robot_radius_m` behind its origin) to
+    /// `window_m` ahead and within `reach_m` to the side give the
     /// clearances `l` and `r`; when the smaller is below `reach_m`, the robot steers toward the
     /// middle, `atan2((l − r) / 2, lookahead_m)`, at most `max_rad`. A side with nothing seen
     /// counts as `reach_m` away. In a corridor this centres the robot, in a doorway too.
@@ -355,7 +356,8 @@ impl ObstacleMemory {
                 continue;
             }
             let [f, l] = self.to_robot(*key);
-            if !(0.0..=window_m).contains(&f) {
+            // beside the robot (down to its back) counts too: that is where a wall it scrapes is
+            if !(-self.params.robot_radius_m..=window_m).contains(&f) {
                 continue;
             }
             if l > 0.0 {
