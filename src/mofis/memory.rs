@@ -393,9 +393,10 @@ mod tests {
     }
 
     /// The default memory, except that standing still counts as measurable (so the geometry
-    /// below is exact).
+    /// below is exact) and cells up to 0.48 m beside the heading count as beside the path.
     fn memory() -> ObstacleMemory {
-        ObstacleMemory::new(MemoryParams { min_travel_m: 0.0, ..MemoryParams::default() }, 26.7f64.to_radians())
+        let p = MemoryParams { min_travel_m: 0.0, side_margin_m: 0.3, ..MemoryParams::default() };
+        ObstacleMemory::new(p, 26.7f64.to_radians())
     }
 
     const STILL: BodyVelocity = BodyVelocity { v: 0.0, omega: 0.0 };
