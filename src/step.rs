@@ -109,7 +109,9 @@ struct Keyframe {
     yaw_rad: f64,
     /// Largest change of the measured turn rate between two steps since the keyframe, rad/s.
     turn_change: f64,
-    last_omega: f64,
+    /// The turn rate of the last step (`None` for a priming frame: its odometry is not used,
+    /// so a replay that primes with zero velocity computes the same).
+    last_omega: Option<f64>,
 }
 
 /// What one step produced (the newer frame of the pair is `seq`, captured at `t_ns`).
@@ -119,6 +121,8 @@ pub struct StepOutput {
     pub t_ns: u64,
     /// Interval of the pair (keyframe to this frame), s.
     pub dt: f64,
+    /// Capture time of the frame stepped before this one, ns (the keyframe or a later frame).
+    pub prev_t_ns: u64,
     pub flow: FlowField,
     pub perception: Perception,
     /// The obstacle MOFIS avoided: the obstacle memory's threat (the nearest solid thing in or
@@ -246,14 +250,8 @@ impl Pipeline {
         let calib = self.calib_for(&frame);
         let Some(key) = &mut self.key else {
             let last_ns = frame.t_ns;
-            self.key = Some(Keyframe {
-                frame,
-                last_ns,
-                travel_m: 0.0,
-                yaw_rad: 0.0,
-                turn_change: 0.0,
-                last_omega: odometry.omega,
-            });
+            self.key =
+                Some(Keyframe { frame, last_ns, travel_m: 0.0, yaw_rad: 0.0, turn_change: 0.0, last_omega: None });
             return Ok(None);
         };
         if frame.t_ns <= key.last_ns {
@@ -263,13 +261,16 @@ impl Pipeline {
             self.step(frame, odometry)?;
             return Err(err);
         }
-        let frame_dt = (frame.t_ns - key.last_ns) as f64 * 1e-9;
+        let prev_t_ns = key.last_ns;
+        let frame_dt = (frame.t_ns - prev_t_ns) as f64 * 1e-9;
         key.last_ns = frame.t_ns;
         if odometry.v.is_finite() && odometry.omega.is_finite() {
             key.travel_m += odometry.v * frame_dt;
             key.yaw_rad += odometry.omega * frame_dt;
-            key.turn_change = key.turn_change.max((odometry.omega - key.last_omega).abs());
-            key.last_omega = odometry.omega;
+            if let Some(last) = key.last_omega {
+                key.turn_change = key.turn_change.max((odometry.omega - last).abs());
+            }
+            key.last_omega = Some(odometry.omega);
         }
         let dt = (frame.t_ns - key.frame.t_ns) as f64 * 1e-9;
         // the pair's motion as one constant velocity over its interval
@@ -285,7 +286,7 @@ impl Pipeline {
                 travel_m: 0.0,
                 yaw_rad: 0.0,
                 turn_change: 0.0,
-                last_omega: odometry.omega,
+                last_omega: Some(odometry.omega),
             };
         }
         let goal = match &mut self.navigator {
@@ -312,7 +313,7 @@ impl Pipeline {
         let front = self.memory.free_distance(0.0, self.mofis_range) - self.memory.params().robot_radius_m;
         let view = Perception { obstacle: avoided, ..perception.clone() };
         let mofis = self.mofis.step_with_front(&view, Some(front.max(0.0)), &steered, frame_dt)?;
-        Ok(Some(StepOutput { seq, t_ns, dt, flow, perception, avoided, goal, mofis }))
+        Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, mofis }))
     }
 
     fn calib_for(&mut self, frame: &Frame) -> Calibration {
@@ -333,5 +334,88 @@ impl Pipeline {
                 scaled
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::flow::Backend;
+    use hal::LumaImage;
+
+    /// A textured frame shifted right by `shift` pixels (deterministic noise, smoothed).
+    fn frame(seq: u64, t_ns: u64, shift: usize) -> Frame {
+        let (w, h) = (320, 180);
+        let mut data = vec![0u8; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let u = (x + 400 - shift) as u64;
+                let hash =
+                    (u / 3).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ ((y as u64) / 3).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+                data[y * w + x] = (hash >> 56) as u8;
+            }
+        }
+        Frame { seq, t_ns, image: LumaImage::from_vec(w, h, data).unwrap() }
+    }
+
+    fn pipeline() -> Pipeline {
+        let mut cfg = Config::default();
+        cfg.flow.backend = Backend::Cpu;
+        let calib = hal::Calibration::nominal_c310();
+        Pipeline::new(&cfg, calib, None).unwrap()
+    }
+
+    const FRAME_NS: u64 = 33_333_334;
+
+    #[test]
+    fn the_keyframe_is_kept_until_the_robot_has_driven_the_baseline() {
+        let mut p = pipeline();
+        let drive = BodyVelocity::new(0.33, 0.0); // 11 mm per frame: a new keyframe every 2nd frame
+        assert!(p.step(frame(0, 0, 0), drive).unwrap().is_none(), "the first frame primes");
+        let dts: Vec<u64> = (1..=5u64)
+            .map(|k| {
+                let out = p.step(frame(k, k * FRAME_NS, 0), drive).unwrap().unwrap();
+                assert_eq!(out.seq, k);
+                (out.dt / (FRAME_NS as f64 * 1e-9)).round() as u64
+            })
+            .collect();
+        assert_eq!(dts, [1, 2, 1, 2, 1], "pairs (0,1) (0,2) (2,3) (2,4) (4,5)");
+        // standing still: the keyframe (frame 4) ages out after max_span_s = 0.4 s (12 frames)
+        let still = BodyVelocity::ZERO;
+        let dts: Vec<u64> = (6..=19u64)
+            .map(|k| {
+                let out = p.step(frame(k, k * FRAME_NS, 0), still).unwrap().unwrap();
+                (out.dt / (FRAME_NS as f64 * 1e-9)).round() as u64
+            })
+            .collect();
+        assert_eq!(dts, [2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 1, 2, 3]);
+    }
+
+    #[test]
+    fn consecutive_pairs_with_a_zero_baseline_and_the_flow_of_the_pair() {
+        let mut cfg = Config::default();
+        cfg.flow.backend = Backend::Cpu;
+        cfg.pairing.min_baseline_m = 0.0;
+        let mut p = Pipeline::new(&cfg, hal::Calibration::nominal_c310(), None).unwrap();
+        let drive = BodyVelocity::new(0.33, 0.0);
+        p.step(frame(0, 0, 0), drive).unwrap();
+        let out = p.step(frame(1, FRAME_NS, 2), drive).unwrap().unwrap();
+        assert!((out.dt - FRAME_NS as f64 * 1e-9).abs() < 1e-12);
+        // the image moved 2 px right between the frames: the flow says so
+        let inner: Vec<_> = out.flow.vectors.iter().filter(|v| v.valid()).collect();
+        assert!(!inner.is_empty());
+        let exact = inner.iter().filter(|v| (v.u - 2.0).abs() < 0.2 && v.v.abs() < 0.2).count();
+        assert!(exact * 10 >= inner.len() * 9, "{exact} of {} vectors at (2, 0)", inner.len());
+    }
+
+    #[test]
+    fn a_frame_that_is_not_newer_is_an_error_and_starts_the_next_pair() {
+        let mut p = pipeline();
+        let drive = BodyVelocity::new(0.33, 0.0);
+        p.step(frame(0, 0, 0), drive).unwrap();
+        p.step(frame(1, FRAME_NS, 0), drive).unwrap();
+        assert!(matches!(p.step(frame(2, FRAME_NS, 0), drive), Err(StepError::Time { seq: 2, .. })));
+        let out = p.step(frame(3, 2 * FRAME_NS, 0), drive).unwrap().unwrap();
+        assert!((out.dt - FRAME_NS as f64 * 1e-9).abs() < 1e-12, "the rejected frame starts the next pair");
     }
 }

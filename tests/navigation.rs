@@ -110,16 +110,19 @@ fn office_mission_arrives_in_front_of_d2() {
 #[test]
 fn door_sightings_correct_bad_odometry() {
     let map = office();
-    // Odometry under-reports distance by 20%.
-    let mut with = Walk { odo_scale: 0.8, ..Walk::new(21.0, -3.0, 90.0) };
+    // Odometry under-reports distance by 5% (worn tyres, a bad ticks-per-metre calibration):
+    // 0.6 m short after the 12 m corridor leg. Door sightings are matched within
+    // `landmark_gate_m` (0.5 m) of where the odometry expects the door, so each one, 6 m apart,
+    // takes out the 0.3 m accumulated since the last.
+    let mut with = Walk { odo_scale: 0.95, ..Walk::new(21.0, -3.0, 90.0) };
     let (status, _) = with.run(&mut mission(&map, "R9:D2"), 120.0);
     assert_eq!(status, GoalStatus::Arrived);
-    assert!((with.x - 9.0).abs() < 0.4, "with landmarks stopped at x = {:.2}", with.x);
+    assert!((with.x - 9.0).abs() < 0.25, "with landmarks stopped at x = {:.2}", with.x);
 
-    let mut without = Walk { odo_scale: 0.8, landmarks: false, ..Walk::new(21.0, -3.0, 90.0) };
+    let mut without = Walk { odo_scale: 0.95, landmarks: false, ..Walk::new(21.0, -3.0, 90.0) };
     let (status, events) = without.run(&mut mission(&map, "R9:D2"), 120.0);
     assert_eq!(status, GoalStatus::Arrived);
-    assert!(without.x < 7.0, "odometry alone overshoots D2 by 3 m (x = {:.2})", without.x);
+    assert!(without.x < 8.5, "odometry alone overshoots D2 by 0.6 m (x = {:.2})", without.x);
     let missed = events.iter().filter(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })).count();
     assert_eq!(missed, 2, "every door reported missing");
 }

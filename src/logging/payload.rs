@@ -95,8 +95,9 @@ pub struct PerceptionLog {
 /// `/step/input`: what one call of the per-frame pipeline consumed, so `flownav replay` can feed
 /// the same inputs to a fresh [`crate::step::Pipeline`] (see docs/logging.md, "Replay").
 ///
-/// `Step`: `Pipeline::step` gave an output for frame `seq` captured at `t_ns`, paired with the
-/// frame captured at `prev_t_ns`, with the odometry `v`, `omega` (bit-exact floats). `FailSafe`:
+/// `Step`: `Pipeline::step` gave an output for frame `seq` captured at `t_ns`, stepped right
+/// after the frame captured at `prev_t_ns` (the flow's older frame is the pipeline's keyframe,
+/// which replay reproduces by feeding the frames in order), with the odometry `v`, `omega` (bit-exact floats). `FailSafe`:
 /// `Pipeline::fail_safe` was called at `t_ns` (the limiter stopped, the previous frame forgotten).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -320,7 +321,7 @@ pub fn base_status_schema() -> Value {
 pub fn step_input_schema() -> Value {
     json!({
         "title": "flownav.StepInput",
-        "description": "What the per-frame pipeline consumed, for replay: kind \"step\" (frame seq at t_ns paired with the frame at prev_t_ns, odometry v m/s and omega rad/s) or \"fail_safe\" (the pipeline was stopped and reset at t_ns, with the reason)",
+        "description": "What the per-frame pipeline consumed, for replay: kind \"step\" (frame seq at t_ns stepped after the frame at prev_t_ns, odometry v m/s and omega rad/s) or \"fail_safe\" (the pipeline was stopped and reset at t_ns, with the reason)",
         "type": "object",
         "properties": {
             "kind": {"type": "string", "enum": ["step", "fail_safe"]},

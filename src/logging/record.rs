@@ -154,12 +154,12 @@ pub fn attributes_json(pipeline: &Pipeline) -> serde_json::Value {
 /// step (the attributes and the PAFSIS progress are read from `pipeline`).
 pub fn record_step(h: &LogHandle, input_odometry: BodyVelocity, out: &StepOutput, pipeline: &Pipeline) {
     let t = out.t_ns;
-    // `dt` is (t − prev) ns × 1e-9 in f64: exact back to the nanosecond for any interval < 2^52 ns.
-    let prev_t_ns = t.saturating_sub((out.dt * 1e9).round() as u64);
+    // the frame stepped before this one (the replay feeds frames in the same order; the pair's
+    // older frame, the keyframe, may lie further back)
     h.step_input(&StepInputLog::Step {
         seq: out.seq,
         t_ns: t,
-        prev_t_ns,
+        prev_t_ns: out.prev_t_ns,
         v: input_odometry.v,
         omega: input_odometry.omega,
     });
