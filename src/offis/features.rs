@@ -158,7 +158,9 @@ fn inliers_of(bins: &[Bin], free: u64, line: &Line) -> u64 {
 pub const MAX_HOLE_M: f64 = 1.8;
 
 /// Keeps the largest run of `line`'s inliers whose neighbours along the line are at most
-/// [`MAX_HOLE_M`] apart (two collinear but separate objects are not one plane).
+/// [`MAX_HOLE_M`] apart (two collinear but separate objects are not one plane). Neighbours with
+/// no other surface seen between them (adjacent bins, or only empty bins between) are never
+/// split: far along a grazing wall, one bin spans more than [`MAX_HOLE_M`].
 fn contiguous(bins: &[Bin], line: &Line) -> u64 {
     let mut pts: Vec<(f64, usize)> = (0..bins.len())
         .filter(|&b| line.inliers >> b & 1 == 1)
@@ -169,7 +171,8 @@ fn contiguous(bins: &[Bin], line: &Line) -> u64 {
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     let (mut best, mut run, mut best_n, mut n) = (0u64, 0u64, 0, 0);
     for (k, &(s, b)) in pts.iter().enumerate() {
-        if k > 0 && s - pts[k - 1].0 > MAX_HOLE_M {
+        let seen_between = |a: usize, b: usize| (a.min(b) + 1..a.max(b)).any(|x| bins[x].point.is_some());
+        if k > 0 && s - pts[k - 1].0 > MAX_HOLE_M && seen_between(pts[k - 1].1, b) {
             run = 0;
             n = 0;
         }
@@ -326,8 +329,12 @@ impl TpoModel {
     }
 }
 
-/// The obstacle test: range `r` is clearly nearer than the reference range `reference`.
+/// The obstacle test: range `r` is clearly nearer than the reference range `reference`
+/// (always, for a finite `r`, when the reference is infinite: no TPO surface there).
 pub fn clearly_nearer(r: f64, reference: f64) -> bool {
+    if reference == f64::INFINITY {
+        return r.is_finite();
+    }
     reference - r > (0.2 * reference).max(0.3)
 }
 
