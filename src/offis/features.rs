@@ -278,22 +278,71 @@ pub const SPLIT_MIN_DEG: f64 = 12.0;
 pub struct TpoModel {
     /// The plane with the most support first.
     pub lines: [Option<Line>; 2],
+    /// Bins whose envelope point lies on an occluder ([`occluders`]), left out of the fit.
+    pub occluded: u64,
+}
+
+/// Two neighbouring envelope points are on different surfaces (a depth step) when the nearer
+/// is nearer than the farther by more than this fraction of the farther's range, and by more
+/// than [`STEP_MIN_M`]. Looser than [`clearly_nearer`]: depth noise on one bin must not cut a
+/// wall into pieces.
+pub const STEP_REL: f64 = 0.25;
+pub const STEP_MIN_M: f64 = 0.4;
+
+fn depth_step(a: f64, b: f64) -> bool {
+    let (near, far) = (a.min(b), a.max(b));
+    far - near > (STEP_REL * far).max(STEP_MIN_M)
+}
+
+/// Bins whose envelope points form an *occluder*: a run of bins (neighbours within a depth
+/// step of each other, empty bins skipped) that is nearer than the surfaces on both sides of
+/// it, across a depth step, and narrower than a plane ([`MIN_PLANE_M`]). A box or a person in
+/// front of a wall; TPO planes reach the floor and the ceiling and are wide, and a door's
+/// opening is farther than its wall, not nearer. A run at the image edge has a neighbour on
+/// one side only and is kept: a wall beside a door's opening looks the same there.
+pub fn occluders(bins: &[Bin]) -> u64 {
+    let pts: Vec<(usize, [f64; 2])> =
+        bins.iter().enumerate().take(64).filter_map(|(b, x)| x.point.map(|p| (b, p))).collect();
+    let mut mask = 0u64;
+    let mut start = 0;
+    while start < pts.len() {
+        let mut end = start + 1;
+        while end < pts.len() && !depth_step(range(pts[end - 1].1), range(pts[end].1)) {
+            end += 1;
+        }
+        // run pts[start..end]
+        if start > 0 && end < pts.len() {
+            let run = &pts[start..end];
+            let nearer_than = |q: [f64; 2], p: [f64; 2]| range(p) < range(q);
+            let (first, last) = (run[0].1, run[run.len() - 1].1);
+            let width = (last[0] - first[0]).hypot(last[1] - first[1]);
+            if nearer_than(pts[start - 1].1, first) && nearer_than(pts[end].1, last) && width < MIN_PLANE_M {
+                for &(b, _) in run {
+                    mask |= 1 << b;
+                }
+            }
+        }
+        start = end;
+    }
+    mask
 }
 
 impl TpoModel {
-    /// Fits the model to the envelope points within [`FIT_RANGE_M`] (at most 64 bins).
+    /// Fits the model to the envelope points within [`FIT_RANGE_M`] (at most 64 bins) that are
+    /// not on an occluder.
     pub fn fit(bins: &[Bin]) -> Self {
+        let occluded = occluders(bins);
         let mut free = 0u64;
         for (b, bin) in bins.iter().enumerate().take(64) {
-            if bin.point.is_some_and(|p| range(p) <= FIT_RANGE_M) {
+            if bin.point.is_some_and(|p| range(p) <= FIT_RANGE_M) && occluded >> b & 1 == 0 {
                 free |= 1 << b;
             }
         }
         let first = best_line(bins, free, MIN_PLANE_M);
         let second = first.and_then(|l| best_line(bins, free & !l.inliers, MIN_PLANE_M));
         match split(bins, free, &[first, second]) {
-            Some([a, b]) => Self { lines: [Some(a), Some(b)] },
-            None => Self { lines: [first, second] },
+            Some([a, b]) => Self { lines: [Some(a), Some(b)], occluded },
+            None => Self { lines: [first, second], occluded },
         }
     }
 
@@ -407,7 +456,7 @@ impl Features {
             .filter(|l| l.heading_angle_deg() >= 30.0)
             .filter_map(|l| l.hit(0.0, 1.0))
             .min_by(f64::total_cmp);
-        let (gap_m, gap_bearings) = Self::widest_gap(bins, &planes);
+        let (gap_m, gap_bearings) = Self::widest_gap(bins, &planes, model.occluded);
         let heading_in_gap = gap_bearings.is_some_and(|[lo, hi]| lo <= 0.0 && 0.0 <= hi);
         // through a gap, the next plane behind it (if any)
         let open_ahead = if heading_in_gap {
@@ -450,7 +499,7 @@ impl Features {
     /// The widest gap (m) between consecutive inlier bins of one plane where some bin between
     /// shows a surface clearly beyond the plane and none is nearer than it; and the bearings
     /// `[right, left]` of the gap's edges.
-    fn widest_gap(bins: &[Bin], planes: &[&Line]) -> (f64, Option<[f64; 2]>) {
+    fn widest_gap(bins: &[Bin], planes: &[&Line], occluded: u64) -> (f64, Option<[f64; 2]>) {
         let mut best = (0.0, None);
         for l in planes {
             let idx: Vec<usize> = (0..bins.len()).filter(|&b| l.inliers >> b & 1 == 1).collect();
@@ -461,8 +510,12 @@ impl Features {
                 }
                 let mut beyond = false;
                 let mut blocked = false;
-                for bin in &bins[i + 1..j] {
+                for (k, bin) in bins.iter().enumerate().take(j).skip(i + 1) {
                     let (Some(p), Some(h)) = (bin.point, l.hit(bin.bearing, 2.0)) else { continue };
+                    if occluded >> k & 1 == 1 {
+                        // an obstacle in front of the opening hides it, does not close it
+                        continue;
+                    }
                     let r = range(p);
                     beyond |= r - h > (0.15 * h).max(0.4);
                     blocked |= clearly_nearer(r, h);
