@@ -327,6 +327,55 @@ pub fn occluders(bins: &[Bin]) -> u64 {
     mask
 }
 
+/// A wall along the heading beyond which the camera sees a parallel one: the partner of a
+/// corridor's wall, of which an obstacle or the camera's turn may leave only a few bins in view.
+/// Fitted with the direction of `first` (only its offset is free), so [`PARTNER_POINTS`] points
+/// spanning [`PARTNER_M`] suffice; it must lie on the other side of the camera.
+fn partner(bins: &[Bin], free: u64, first: &Line) -> Option<Line> {
+    if first.heading_angle_deg() > PARTNER_MAX_DEG {
+        return None;
+    }
+    let side = |p: [f64; 2]| (p[0] - first.centre[0]) * first.dir[1] - (p[1] - first.centre[1]) * first.dir[0];
+    let camera = side([0.0, 0.0]);
+    let mut best: Option<(usize, f64, u64)> = None;
+    for (b, bin) in bins.iter().enumerate().take(64) {
+        let Some(p) = bin.point.filter(|_| free >> b & 1 == 1) else { continue };
+        // beyond the camera, seen from the first wall
+        if side(p) * camera <= 0.0 || side(p).abs() < camera.abs() + 0.3 {
+            continue;
+        }
+        let line = Line { centre: p, dir: first.dir, ..Line::default() };
+        let m = inliers_of(bins, free, &line);
+        let cost: f64 = (0..bins.len())
+            .filter(|&q| m >> q & 1 == 1)
+            .filter_map(|q| bins[q].point)
+            .map(|q| (line.distance(q) / tolerance(range(q))).powi(2))
+            .sum();
+        let n = m.count_ones() as usize;
+        if best.is_none_or(|(bn, bc, _)| n > bn || (n == bn && cost < bc)) {
+            best = Some((n, cost, m));
+        }
+    }
+    let (n, _, mask) = best?;
+    if n < PARTNER_POINTS {
+        return None;
+    }
+    // the offset is the inliers' mean distance across the direction; the extent along it
+    let pts: Vec<[f64; 2]> = (0..bins.len()).filter(|&q| mask >> q & 1 == 1).filter_map(|q| bins[q].point).collect();
+    let nf = pts.len() as f64;
+    let centre = [pts.iter().map(|p| p[0]).sum::<f64>() / nf, pts.iter().map(|p| p[1]).sum::<f64>() / nf];
+    let along = |p: &[f64; 2]| (p[0] - centre[0]) * first.dir[0] + (p[1] - centre[1]) * first.dir[1];
+    let lo = pts.iter().map(along).fold(f64::INFINITY, f64::min);
+    let hi = pts.iter().map(along).fold(f64::NEG_INFINITY, f64::max);
+    (hi - lo >= PARTNER_M).then_some(Line { centre, dir: first.dir, inliers: mask, extent: [lo, hi] })
+}
+
+/// See [`partner`]: the first plane runs within this angle of the heading, degrees; the partner
+/// holds at least this many points spanning at least this length, m.
+pub const PARTNER_MAX_DEG: f64 = 25.0;
+pub const PARTNER_POINTS: usize = 2;
+pub const PARTNER_M: f64 = 0.5;
+
 impl TpoModel {
     /// Fits the model to the envelope points within [`FIT_RANGE_M`] (at most 64 bins) that are
     /// not on an occluder.
@@ -339,7 +388,9 @@ impl TpoModel {
             }
         }
         let first = best_line(bins, free, MIN_PLANE_M);
-        let second = first.and_then(|l| best_line(bins, free & !l.inliers, MIN_PLANE_M));
+        let second = first.and_then(|l| {
+            best_line(bins, free & !l.inliers, MIN_PLANE_M).or_else(|| partner(bins, free & !l.inliers, &l))
+        });
         match split(bins, free, &[first, second]) {
             Some([a, b]) => Self { lines: [Some(a), Some(b)], occluded },
             None => Self { lines: [first, second], occluded },
