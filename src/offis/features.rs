@@ -245,6 +245,9 @@ fn cost(bins: &[Bin], free: u64, lines: &[Option<Line>; 2]) -> f64 {
 /// points better than `current` by at least [`SPLIT_MARGIN`]. The sequential fit can miss a
 /// shallow corner, whose two walls stay within the tolerance of one line through its middle.
 fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
+    if !bent(bins, free) {
+        return None;
+    }
     let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
     let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
     for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
@@ -266,6 +269,34 @@ fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 
     }
     best.1
 }
+
+/// Whether the points of `free` bend: the residuals of one line through all of them (total
+/// least squares), in bin order, form few runs of one sign (a runs test) and at least half of
+/// them are significant (beyond [`BEND_SIGNIFICANT`] of their tolerance). A corner's points lie
+/// beyond the line at both ends and before it in the middle (3 runs); depth noise on a wall
+/// flips the sign from bin to bin or stays within the tolerance.
+fn bent(bins: &[Bin], free: u64) -> bool {
+    let Some(line) = fit_mask(bins, free) else { return false };
+    let mut n = 0;
+    let (mut significant, mut runs, mut last) = (0, 0, 0.0f64);
+    for b in (0..bins.len()).filter(|&b| free >> b & 1 == 1) {
+        let Some(p) = bins[b].point else { continue };
+        n += 1;
+        let r = (p[0] - line.centre[0]) * line.dir[1] - (p[1] - line.centre[1]) * line.dir[0];
+        if r.abs() > BEND_SIGNIFICANT * tolerance(range(p)) {
+            significant += 1;
+            if r.signum() != last {
+                runs += 1;
+                last = r.signum();
+            }
+        }
+    }
+    2 * significant >= n && runs <= BEND_MAX_RUNS
+}
+
+/// See [`bent`].
+pub const BEND_SIGNIFICANT: f64 = 0.3;
+pub const BEND_MAX_RUNS: usize = 4;
 
 /// See [`split`]. Each wall of a corner must span at least [`CORNER_SIDE_M`] (a near corner
 /// shows little of each wall) and the two hold at least 8 points together.
