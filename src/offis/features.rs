@@ -270,33 +270,44 @@ fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 
     best.1
 }
 
-/// Whether the points of `free` bend: the residuals of one line through all of them (total
-/// least squares), in bin order, form few runs of one sign (a runs test) and at least half of
-/// them are significant (beyond [`BEND_SIGNIFICANT`] of their tolerance). A corner's points lie
-/// beyond the line at both ends and before it in the middle (3 runs); depth noise on a wall
-/// flips the sign from bin to bin or stays within the tolerance.
+/// Whether the points of `free` bend: at least half of them lie significantly off one line
+/// through all of them (total least squares; beyond [`BEND_SIGNIFICANT`] of their tolerance),
+/// and the signs of those residuals, in bin order, form fewer runs than random signs would
+/// (Wald–Wolfowitz runs test, z ≤ [`BEND_MAX_Z`]). A corner's points lie beyond the line at
+/// both ends and before it in the middle (3 runs); depth noise on a wall flips the sign from
+/// bin to bin or stays within the tolerance.
 fn bent(bins: &[Bin], free: u64) -> bool {
     let Some(line) = fit_mask(bins, free) else { return false };
-    let mut n = 0;
-    let (mut significant, mut runs, mut last) = (0, 0, 0.0f64);
+    let (mut n, mut plus, mut minus, mut runs, mut last) = (0usize, 0usize, 0usize, 0usize, 0.0f64);
     for b in (0..bins.len()).filter(|&b| free >> b & 1 == 1) {
         let Some(p) = bins[b].point else { continue };
         n += 1;
         let r = (p[0] - line.centre[0]) * line.dir[1] - (p[1] - line.centre[1]) * line.dir[0];
         if r.abs() > BEND_SIGNIFICANT * tolerance(range(p)) {
-            significant += 1;
+            if r > 0.0 {
+                plus += 1
+            } else {
+                minus += 1
+            }
             if r.signum() != last {
                 runs += 1;
                 last = r.signum();
             }
         }
     }
-    2 * significant >= n && runs <= BEND_MAX_RUNS
+    let m = (plus + minus) as f64;
+    if 2 * (plus + minus) < n || plus == 0 || minus == 0 {
+        return false;
+    }
+    let (np, nm) = (plus as f64, minus as f64);
+    let mean = 1.0 + 2.0 * np * nm / m;
+    let var = 2.0 * np * nm * (2.0 * np * nm - m) / (m * m * (m - 1.0));
+    var > 0.0 && (runs as f64 - mean) / var.sqrt() <= BEND_MAX_Z
 }
 
 /// See [`bent`].
 pub const BEND_SIGNIFICANT: f64 = 0.3;
-pub const BEND_MAX_RUNS: usize = 4;
+pub const BEND_MAX_Z: f64 = -1.2;
 
 /// See [`split`]. Each wall of a corner must span at least [`CORNER_SIDE_M`] (a near corner
 /// shows little of each wall) and the two hold at least 8 points together.
@@ -559,6 +570,9 @@ impl Features {
             (l.extent[0] - s).max(s - l.extent[1]).max(0.0)
         };
         let meet_m = match (vertex, &planes[..]) {
+            // behind an occluder the planes may well reach their crossing: a corner's edge hidden
+            // by a person
+            (Some(v), [_, _]) if Self::hidden(bins, model.occluded, v) => 0.0,
             (Some(v), [a, b]) => outside(a, v).max(outside(b, v)).min(OPEN_AHEAD_MAX_M),
             _ => OPEN_AHEAD_MAX_M,
         };
@@ -576,6 +590,22 @@ impl Features {
             meet_m,
             vertex_m,
         }
+    }
+
+    /// Whether floor-plan point `v` is hidden by an occluder: its bearing lies within half a
+    /// bin of an occluded bin's, and it is farther than that bin's point.
+    fn hidden(bins: &[Bin], occluded: u64, v: [f64; 2]) -> bool {
+        let half = if bins.len() > 1 {
+            0.5 * (bins[0].bearing - bins[bins.len() - 1].bearing).abs() / (bins.len() - 1) as f64
+        } else {
+            0.0
+        };
+        let bearing = v[1].atan2(v[0]);
+        bins.iter().enumerate().take(64).any(|(b, bin)| {
+            occluded >> b & 1 == 1
+                && (bin.bearing - bearing).abs() <= half
+                && bin.point.is_some_and(|p| range(p) < range(v))
+        })
     }
 
     /// The widest gap (m) between consecutive inlier bins of one plane where some bin between
