@@ -565,14 +565,15 @@ impl Features {
             [a, b] if pair_angle_deg >= 5.0 => intersect(a, b),
             _ => None,
         };
+        // how far `p` lies beyond the plane's seen extent, unless an occluder hides the stretch
         let outside = |l: &Line, p: [f64; 2]| {
             let s = (p[0] - l.centre[0]) * l.dir[0] + (p[1] - l.centre[1]) * l.dir[1];
-            (l.extent[0] - s).max(s - l.extent[1]).max(0.0)
+            let d = (l.extent[0] - s).max(s - l.extent[1]).max(0.0);
+            let e = if s < l.extent[0] { l.extent[0] } else { l.extent[1] };
+            let end = [l.centre[0] + e * l.dir[0], l.centre[1] + e * l.dir[1]];
+            if d > 0.0 && Self::stretch_hidden(bins, model.occluded, end, p) { 0.0 } else { d }
         };
         let meet_m = match (vertex, &planes[..]) {
-            // behind an occluder the planes may well reach their crossing: a corner's edge hidden
-            // by a person
-            (Some(v), [_, _]) if Self::hidden(bins, model.occluded, v) => 0.0,
             (Some(v), [a, b]) => outside(a, v).max(outside(b, v)).min(OPEN_AHEAD_MAX_M),
             _ => OPEN_AHEAD_MAX_M,
         };
@@ -592,20 +593,29 @@ impl Features {
         }
     }
 
-    /// Whether floor-plan point `v` is hidden by an occluder: its bearing lies within half a
-    /// bin of an occluded bin's, and it is farther than that bin's point.
-    fn hidden(bins: &[Bin], occluded: u64, v: [f64; 2]) -> bool {
+    /// Whether the stretch of a plane from the end of its seen extent `end` to the point `v`
+    /// (where it meets another) is hidden by an occluder: the bins whose bearings lie between
+    /// (leaving out half a bin at `v`) include occluded ones and show nothing else. Behind a
+    /// person the planes may well reach their crossing: a corner's edge hidden.
+    fn stretch_hidden(bins: &[Bin], occluded: u64, end: [f64; 2], v: [f64; 2]) -> bool {
         let half = if bins.len() > 1 {
             0.5 * (bins[0].bearing - bins[bins.len() - 1].bearing).abs() / (bins.len() - 1) as f64
         } else {
             0.0
         };
-        let bearing = v[1].atan2(v[0]);
-        bins.iter().enumerate().take(64).any(|(b, bin)| {
-            occluded >> b & 1 == 1
-                && (bin.bearing - bearing).abs() <= half
-                && bin.point.is_some_and(|p| range(p) < range(v))
-        })
+        let (a, bv) = (end[1].atan2(end[0]), v[1].atan2(v[0]));
+        let (lo, hi) = if a < bv { (a, bv - half) } else { (bv + half, a) };
+        let mut any = false;
+        for (b, bin) in bins.iter().enumerate().take(64) {
+            if bin.bearing <= lo || bin.bearing >= hi || bin.point.is_none() {
+                continue;
+            }
+            if occluded >> b & 1 == 0 {
+                return false;
+            }
+            any = true;
+        }
+        any
     }
 
     /// The widest gap (m) between consecutive inlier bins of one plane where some bin between
