@@ -161,7 +161,7 @@ pub const MAX_HOLE_M: f64 = 1.8;
 /// [`MAX_HOLE_M`] apart (two collinear but separate objects are not one plane). Neighbours with
 /// no other surface seen between them (adjacent bins, or only empty bins between) are never
 /// split: far along a grazing wall, one bin spans more than [`MAX_HOLE_M`].
-fn contiguous(bins: &[Bin], line: &Line) -> u64 {
+fn contiguous(bins: &[Bin], line: &Line, occluded: u64) -> u64 {
     let mut pts: Vec<(f64, usize)> = (0..bins.len())
         .filter(|&b| line.inliers >> b & 1 == 1)
         .filter_map(|b| {
@@ -172,7 +172,13 @@ fn contiguous(bins: &[Bin], line: &Line) -> u64 {
     let (mut best, mut run, mut best_n, mut n) = (0u64, 0u64, 0, 0);
     for (k, &(s, b)) in pts.iter().enumerate() {
         let seen_between = |a: usize, b: usize| (a.min(b) + 1..a.max(b)).any(|x| bins[x].point.is_some());
-        if k > 0 && s - pts[k - 1].0 > MAX_HOLE_M && seen_between(pts[k - 1].1, b) {
+        // an occluder in the hole hides part of it: only the rest counts towards its width
+        let visible = |a: usize, b: usize| {
+            let between = a.max(b) - a.min(b);
+            let hidden = (a.min(b) + 1..a.max(b)).filter(|&x| occluded >> x & 1 == 1).count();
+            (between - hidden) as f64 / between as f64
+        };
+        if k > 0 && (s - pts[k - 1].0) * visible(pts[k - 1].1, b) > MAX_HOLE_M && seen_between(pts[k - 1].1, b) {
             run = 0;
             n = 0;
         }
@@ -189,7 +195,7 @@ fn contiguous(bins: &[Bin], line: &Line) -> u64 {
 /// The best line among the points of `free` (see the module doc), if it is a plane. Lines are
 /// scored MSAC-style, `Σ min(d², T²)` over the free points with `T` the inlier tolerance, so a
 /// line through the middle of a corner (many points, each far off) loses to one of its walls.
-fn best_line(bins: &[Bin], free: u64, min_extent_m: f64) -> Option<Line> {
+fn best_line(bins: &[Bin], free: u64, occluded: u64, min_extent_m: f64) -> Option<Line> {
     let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
     let mut best: Option<(f64, u64)> = None;
     for (k, &i) in idx.iter().enumerate() {
@@ -219,7 +225,7 @@ fn best_line(bins: &[Bin], free: u64, min_extent_m: f64) -> Option<Line> {
     let first = fit_mask(bins, mask)?;
     // one refinement: the refit line's own inliers, then the largest contiguous run of them
     let mut line = fit_mask(bins, inliers_of(bins, free, &first)).unwrap_or(first);
-    line = fit_mask(bins, contiguous(bins, &line)).unwrap_or(line);
+    line = fit_mask(bins, contiguous(bins, &line, occluded)).unwrap_or(line);
     is_plane(&line, min_extent_m).then_some(line)
 }
 
@@ -244,7 +250,7 @@ fn cost(bins: &[Bin], free: u64, lines: &[Option<Line>; 2]) -> f64 {
 /// at [`SPLIT_MIN_DEG`] or more (each side fitted like the first plane), if it explains the
 /// points better than `current` by at least [`SPLIT_MARGIN`]. The sequential fit can miss a
 /// shallow corner, whose two walls stay within the tolerance of one line through its middle.
-fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
+fn split(bins: &[Bin], free: u64, occluded: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
     if !bent(bins, free) {
         return None;
     }
@@ -252,7 +258,8 @@ fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 
     let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
     for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
         let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
-        let (Some(a), Some(b)) = (best_line(bins, left, CORNER_SIDE_M), best_line(bins, free & !left, CORNER_SIDE_M))
+        let (Some(a), Some(b)) =
+            (best_line(bins, left, occluded, CORNER_SIDE_M), best_line(bins, free & !left, occluded, CORNER_SIDE_M))
         else {
             continue;
         };
@@ -429,11 +436,11 @@ impl TpoModel {
                 free |= 1 << b;
             }
         }
-        let first = best_line(bins, free, MIN_PLANE_M);
+        let first = best_line(bins, free, occluded, MIN_PLANE_M);
         let second = first.and_then(|l| {
-            best_line(bins, free & !l.inliers, MIN_PLANE_M).or_else(|| partner(bins, free & !l.inliers, &l))
+            best_line(bins, free & !l.inliers, occluded, MIN_PLANE_M).or_else(|| partner(bins, free & !l.inliers, &l))
         });
-        match split(bins, free, &[first, second]) {
+        match split(bins, free, occluded, &[first, second]) {
             Some([a, b]) => Self { lines: [Some(a), Some(b)], occluded },
             None => Self { lines: [first, second], occluded },
         }
@@ -634,11 +641,17 @@ impl Features {
                 let mut blocked = false;
                 for (k, bin) in bins.iter().enumerate().take(j).skip(i + 1) {
                     let (Some(p), Some(h)) = (bin.point, l.hit(bin.bearing, 2.0)) else { continue };
-                    if occluded >> k & 1 == 1 {
+                    let near_occluder = |x: usize| x < 64 && occluded >> x & 1 == 1;
+                    if near_occluder(k) {
                         // an obstacle in front of the opening hides it, does not close it
                         continue;
                     }
                     let r = range(p);
+                    if near_occluder(k + 1) || (k > 0 && near_occluder(k - 1)) {
+                        // the occluder's outline: its flow mixes with what lies behind
+                        beyond |= r - h > (0.15 * h).max(0.4);
+                        continue;
+                    }
                     beyond |= r - h > (0.15 * h).max(0.4);
                     blocked |= clearly_nearer(r, h);
                 }
