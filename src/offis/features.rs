@@ -258,8 +258,10 @@ fn split(bins: &[Bin], free: u64, occluded: u64, current: &[Option<Line>; 2]) ->
     let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
     for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
         let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
-        let (Some(a), Some(b)) =
-            (best_line(bins, left, occluded, CORNER_SIDE_M), best_line(bins, free & !left, occluded, CORNER_SIDE_M))
+        // an occluder between the two sides hides the corner's edge and part of each wall
+        let hidden = (idx[k - 1] + 1..idx[k]).any(|x| occluded >> x & 1 == 1);
+        let side = if hidden { CORNER_SIDE_HIDDEN_M } else { CORNER_SIDE_M };
+        let (Some(a), Some(b)) = (best_line(bins, left, occluded, side), best_line(bins, free & !left, occluded, side))
         else {
             continue;
         };
@@ -309,7 +311,8 @@ fn bent(bins: &[Bin], free: u64) -> bool {
     let (np, nm) = (plus as f64, minus as f64);
     let mean = 1.0 + 2.0 * np * nm / m;
     let var = 2.0 * np * nm * (2.0 * np * nm - m) / (m * m * (m - 1.0));
-    var > 0.0 && (runs as f64 - mean) / var.sqrt() <= BEND_MAX_Z
+    // three runs is a corner's shape; too few points for the test to say more
+    runs <= 3 || (var > 0.0 && (runs as f64 - mean) / var.sqrt() <= BEND_MAX_Z)
 }
 
 /// See [`bent`].
@@ -320,6 +323,8 @@ pub const BEND_MAX_Z: f64 = -1.2;
 /// shows little of each wall) and the two hold at least 8 points together.
 pub const SPLIT_MARGIN: f64 = 1.0;
 pub const CORNER_SIDE_M: f64 = 0.5;
+/// ... or this much when an occluder stands between the two walls.
+pub const CORNER_SIDE_HIDDEN_M: f64 = 0.25;
 pub const SPLIT_MIN_DEG: f64 = 12.0;
 
 /// The TPO's planes: up to two lines on the floor plan.
