@@ -689,6 +689,71 @@ mod tests {
     }
 
     #[test]
+    fn an_occluder_is_left_out_of_the_fit_and_does_not_close_a_door() {
+        // wall at 3 m, a person (0.4 m wide) 1.5 m ahead in front of it
+        let mut pts: Vec<[f64; 2]> = (0..16).map(|k| [3.0, 1.4 - k as f64 * 0.19]).collect();
+        for (k, p) in pts.iter_mut().enumerate().take(9).skip(6) {
+            *p = [1.5, 0.5 * (1.4 - k as f64 * 0.19)];
+        }
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        assert_eq!(m.occluded, 0b1_1100_0000, "{m:?}");
+        assert!(m.lines[0].is_some_and(|l| l.count() == 13) && m.lines[1].is_none(), "{m:?}");
+        assert!((m.expected_range(&bins, 7) - 3.0).abs() < 0.05);
+        let f = Features::compute(&bins, &m);
+        assert_eq!((f.planes, f.gap_m), (1.0, 0.0), "{f:?}");
+        // the same wall with a 1.3 m opening (back wall at 6 m), the person in front of it
+        let pts: Vec<[f64; 2]> = (0..16)
+            .map(|k| {
+                let y = 1.4 - k as f64 * 0.19;
+                match k {
+                    6..=8 => [1.5, y * 0.5],
+                    5 | 9 | 10 => [6.0, y * 2.0],
+                    _ => [3.0, y],
+                }
+            })
+            .collect();
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        let f = Features::compute(&bins, &m);
+        assert!((0.9..1.8).contains(&f.gap_m) && (f.front_m - 3.0).abs() < 0.05, "{f:?} {m:?}");
+    }
+
+    #[test]
+    fn a_corridor_wall_hidden_but_for_two_bins_is_found_as_the_partner() {
+        let mut pts = Vec::new();
+        for k in 0..10 {
+            pts.push(Some([1.5 + k as f64 * 0.5, 1.0]));
+        }
+        pts.extend([None, None, None, None]);
+        pts.extend([Some([2.5, -1.0]), Some([2.0, -1.0])]);
+        let bins: Vec<Bin> =
+            pts.iter().map(|p| Bin { point: *p, bearing: p.map_or(0.0, |p: [f64; 2]| p[1].atan2(p[0])) }).collect();
+        let m = TpoModel::fit(&bins);
+        let f = Features::compute(&bins, &m);
+        assert_eq!((f.planes, f.opposite), (2.0, 1.0), "{f:?}");
+        assert!(f.pair_angle_deg < 1.0 && f.side_angle_deg < 1.0, "{f:?}");
+        // one wall alone has no partner
+        let bins: Vec<Bin> = bins.into_iter().take(10).collect();
+        assert_eq!(Features::compute(&bins, &TpoModel::fit(&bins)).planes, 1.0);
+    }
+
+    #[test]
+    fn a_corner_bends_depth_noise_on_a_wall_does_not() {
+        let all = (1u64 << 16) - 1;
+        // a 90° corner 3 m ahead: both walls at 45° to the heading
+        let corner: Vec<[f64; 2]> = (0..16).map(|k| 1.6 - k as f64 * 0.2).map(|y: f64| [3.0 - y.abs(), y]).collect();
+        assert!(bent(&bins_on(&corner), all));
+        // a frontal wall at 1.4 m with ±0.12 m of alternating depth noise
+        let noisy: Vec<[f64; 2]> =
+            (0..16).map(|k| [1.4 + if k % 2 == 0 { 0.12 } else { -0.12 }, 0.7 - k as f64 * 0.09]).collect();
+        assert!(!bent(&bins_on(&noisy), all));
+        // and no corner is split out of it
+        let m = TpoModel::fit(&bins_on(&noisy));
+        assert!(m.planes().all(|l| l.heading_angle_deg() > 80.0), "{m:?}");
+    }
+
+    #[test]
     fn a_frontal_wall_is_one_plane_across_the_heading() {
         let pts: Vec<[f64; 2]> = (0..16).map(|k| [3.0, 1.4 - k as f64 * 0.19]).collect();
         let bins = bins_on(&pts);
