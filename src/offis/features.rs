@@ -14,7 +14,7 @@
 //! points within `0.06 m + 6 %` of their range wins, then a total-least-squares refit). A line
 //! is a TPO plane only if its inliers span at least [`MIN_PLANE_M`] (a box face or a person is
 //! narrower). The second line is fitted to the points the first leaves (or, beside a wall along
-//! the heading, its parallel [`partner`]); a corner split replaces the two when the points bend.
+//! the heading, its parallel partner); a corner split replaces the two when the points bend.
 //! Occluders (narrow runs of bins in front of the surfaces on both sides, [`occluders`]) take
 //! no part in the fit.
 //!
