@@ -466,7 +466,13 @@ impl Renderer {
         };
         let sf = &self.surfaces[surface as usize];
         let footprint = (s * dir2 / (fx * cos_n.max(1e-3) * dir2.sqrt())) as f32;
-        let t = self.tex.sample(tu as f32 + sf.offset[0], tv as f32 + sf.offset[1], footprint);
+        let (tu, tv) = (tu as f32 + sf.offset[0], tv as f32 + sf.offset[1]);
+        // obstacles carry print (boxes) and folds (clothes) finer than the walls' texture
+        let t = if sf.kind.is_obstacle() {
+            self.tex.sample_detailed(tu, tv, footprint)
+        } else {
+            self.tex.sample(tu, tv, footprint)
+        };
         let value = 255.0 * sf.albedo * shade * (1.0 + sf.contrast * 2.0 * (t - 0.5));
         Hit { depth: s, surface, value }
     }

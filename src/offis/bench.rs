@@ -164,6 +164,8 @@ pub struct Sample {
     pub profile: Vec<Option<[f64; 2]>>,
     /// Blocks found nearer than the TPO, and in the reported obstacle's cluster.
     pub obstacle_blocks: [usize; 2],
+    /// The planes fitted to the profile, for diagnosis.
+    pub model: super::features::TpoModel,
 }
 
 /// The benchmark's result.
@@ -263,6 +265,7 @@ pub fn run(
                 pipeline.offis().attributes().obstacle_blocks,
                 pipeline.offis().attributes().obstacle_cluster,
             ],
+            model: pipeline.offis().attributes().model,
         };
         progress(i, &sample);
         samples.push(sample);

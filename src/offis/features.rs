@@ -13,7 +13,10 @@
 //! exhaustive two-point consensus (every pair of points proposes a line; the one with the most
 //! points within `0.06 m + 6 %` of their range wins, then a total-least-squares refit). A line
 //! is a TPO plane only if its inliers span at least [`MIN_PLANE_M`] (a box face or a person is
-//! narrower). The second line is fitted to the points the first leaves.
+//! narrower). The second line is fitted to the points the first leaves (or, beside a wall along
+//! the heading, its parallel partner); a corner split replaces the two when the points bend.
+//! Occluders (narrow runs of bins in front of the surfaces on both sides, [`occluders`]) take
+//! no part in the fit.
 //!
 //! **Features** (inputs of `rules/offis/*.toml`): how much of the view the planes cover, how
 //! many planes, their angle to each other and to the heading, whether two planes lie on
@@ -158,8 +161,10 @@ fn inliers_of(bins: &[Bin], free: u64, line: &Line) -> u64 {
 pub const MAX_HOLE_M: f64 = 1.8;
 
 /// Keeps the largest run of `line`'s inliers whose neighbours along the line are at most
-/// [`MAX_HOLE_M`] apart (two collinear but separate objects are not one plane).
-fn contiguous(bins: &[Bin], line: &Line) -> u64 {
+/// [`MAX_HOLE_M`] apart (two collinear but separate objects are not one plane). Neighbours with
+/// no other surface seen between them (adjacent bins, or only empty bins between) are never
+/// split: far along a grazing wall, one bin spans more than [`MAX_HOLE_M`].
+fn contiguous(bins: &[Bin], line: &Line, occluded: u64) -> u64 {
     let mut pts: Vec<(f64, usize)> = (0..bins.len())
         .filter(|&b| line.inliers >> b & 1 == 1)
         .filter_map(|b| {
@@ -169,7 +174,14 @@ fn contiguous(bins: &[Bin], line: &Line) -> u64 {
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     let (mut best, mut run, mut best_n, mut n) = (0u64, 0u64, 0, 0);
     for (k, &(s, b)) in pts.iter().enumerate() {
-        if k > 0 && s - pts[k - 1].0 > MAX_HOLE_M {
+        let seen_between = |a: usize, b: usize| (a.min(b) + 1..a.max(b)).any(|x| bins[x].point.is_some());
+        // an occluder in the hole hides part of it: only the rest counts towards its width
+        let visible = |a: usize, b: usize| {
+            let between = a.max(b) - a.min(b);
+            let hidden = (a.min(b) + 1..a.max(b)).filter(|&x| occluded >> x & 1 == 1).count();
+            (between - hidden) as f64 / between as f64
+        };
+        if k > 0 && (s - pts[k - 1].0) * visible(pts[k - 1].1, b) > MAX_HOLE_M && seen_between(pts[k - 1].1, b) {
             run = 0;
             n = 0;
         }
@@ -186,7 +198,7 @@ fn contiguous(bins: &[Bin], line: &Line) -> u64 {
 /// The best line among the points of `free` (see the module doc), if it is a plane. Lines are
 /// scored MSAC-style, `Σ min(d², T²)` over the free points with `T` the inlier tolerance, so a
 /// line through the middle of a corner (many points, each far off) loses to one of its walls.
-fn best_line(bins: &[Bin], free: u64, min_extent_m: f64) -> Option<Line> {
+fn best_line(bins: &[Bin], free: u64, occluded: u64, min_extent_m: f64) -> Option<Line> {
     let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
     let mut best: Option<(f64, u64)> = None;
     for (k, &i) in idx.iter().enumerate() {
@@ -216,7 +228,7 @@ fn best_line(bins: &[Bin], free: u64, min_extent_m: f64) -> Option<Line> {
     let first = fit_mask(bins, mask)?;
     // one refinement: the refit line's own inliers, then the largest contiguous run of them
     let mut line = fit_mask(bins, inliers_of(bins, free, &first)).unwrap_or(first);
-    line = fit_mask(bins, contiguous(bins, &line)).unwrap_or(line);
+    line = fit_mask(bins, contiguous(bins, &line, occluded)).unwrap_or(line);
     is_plane(&line, min_extent_m).then_some(line)
 }
 
@@ -241,12 +253,18 @@ fn cost(bins: &[Bin], free: u64, lines: &[Option<Line>; 2]) -> f64 {
 /// at [`SPLIT_MIN_DEG`] or more (each side fitted like the first plane), if it explains the
 /// points better than `current` by at least [`SPLIT_MARGIN`]. The sequential fit can miss a
 /// shallow corner, whose two walls stay within the tolerance of one line through its middle.
-fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
+fn split(bins: &[Bin], free: u64, occluded: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
+    if !bent(bins, free) {
+        return None;
+    }
     let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
     let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
     for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
         let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
-        let (Some(a), Some(b)) = (best_line(bins, left, CORNER_SIDE_M), best_line(bins, free & !left, CORNER_SIDE_M))
+        // an occluder between the two sides hides the corner's edge and part of each wall
+        let hidden = (idx[k - 1] + 1..idx[k]).any(|x| occluded >> x & 1 == 1);
+        let side = if hidden { CORNER_SIDE_HIDDEN_M } else { CORNER_SIDE_M };
+        let (Some(a), Some(b)) = (best_line(bins, left, occluded, side), best_line(bins, free & !left, occluded, side))
         else {
             continue;
         };
@@ -264,10 +282,52 @@ fn split(bins: &[Bin], free: u64, current: &[Option<Line>; 2]) -> Option<[Line; 
     best.1
 }
 
+/// Whether the points of `free` bend: at least half of them lie significantly off one line
+/// through all of them (total least squares; beyond [`BEND_SIGNIFICANT`] of their tolerance),
+/// and the signs of those residuals, in bin order, form fewer runs than random signs would
+/// (Wald–Wolfowitz runs test, z ≤ [`BEND_MAX_Z`]). A corner's points lie beyond the line at
+/// both ends and before it in the middle (3 runs); depth noise on a wall flips the sign from
+/// bin to bin or stays within the tolerance.
+fn bent(bins: &[Bin], free: u64) -> bool {
+    let Some(line) = fit_mask(bins, free) else { return false };
+    let (mut n, mut plus, mut minus, mut runs, mut last) = (0usize, 0usize, 0usize, 0usize, 0.0f64);
+    for b in (0..bins.len()).filter(|&b| free >> b & 1 == 1) {
+        let Some(p) = bins[b].point else { continue };
+        n += 1;
+        let r = (p[0] - line.centre[0]) * line.dir[1] - (p[1] - line.centre[1]) * line.dir[0];
+        if r.abs() > BEND_SIGNIFICANT * tolerance(range(p)) {
+            if r > 0.0 {
+                plus += 1
+            } else {
+                minus += 1
+            }
+            if r.signum() != last {
+                runs += 1;
+                last = r.signum();
+            }
+        }
+    }
+    let m = (plus + minus) as f64;
+    if 2 * (plus + minus) < n || plus == 0 || minus == 0 {
+        return false;
+    }
+    let (np, nm) = (plus as f64, minus as f64);
+    let mean = 1.0 + 2.0 * np * nm / m;
+    let var = 2.0 * np * nm * (2.0 * np * nm - m) / (m * m * (m - 1.0));
+    // three runs is a corner's shape; too few points for the test to say more
+    runs <= 3 || (var > 0.0 && (runs as f64 - mean) / var.sqrt() <= BEND_MAX_Z)
+}
+
+/// See [`bent`].
+pub const BEND_SIGNIFICANT: f64 = 0.3;
+pub const BEND_MAX_Z: f64 = -1.2;
+
 /// See [`split`]. Each wall of a corner must span at least [`CORNER_SIDE_M`] (a near corner
 /// shows little of each wall) and the two hold at least 8 points together.
 pub const SPLIT_MARGIN: f64 = 1.0;
 pub const CORNER_SIDE_M: f64 = 0.5;
+/// ... or this much when an occluder stands between the two walls.
+pub const CORNER_SIDE_HIDDEN_M: f64 = 0.25;
 pub const SPLIT_MIN_DEG: f64 = 12.0;
 
 /// The TPO's planes: up to two lines on the floor plan.
@@ -275,22 +335,122 @@ pub const SPLIT_MIN_DEG: f64 = 12.0;
 pub struct TpoModel {
     /// The plane with the most support first.
     pub lines: [Option<Line>; 2],
+    /// Bins whose envelope point lies on an occluder ([`occluders`]), left out of the fit.
+    pub occluded: u64,
 }
 
+/// Two neighbouring envelope points are on different surfaces (a depth step) when the nearer
+/// is nearer than the farther by more than this fraction of the farther's range, and by more
+/// than [`STEP_MIN_M`]. Looser than [`clearly_nearer`]: depth noise on one bin must not cut a
+/// wall into pieces.
+pub const STEP_REL: f64 = 0.25;
+pub const STEP_MIN_M: f64 = 0.4;
+
+fn depth_step(a: f64, b: f64) -> bool {
+    let (near, far) = (a.min(b), a.max(b));
+    far - near > (STEP_REL * far).max(STEP_MIN_M)
+}
+
+/// Bins whose envelope points form an *occluder*: a run of bins (neighbours within a depth
+/// step of each other, empty bins skipped) that is nearer than the surfaces on both sides of
+/// it, across a depth step, and narrower than a plane ([`MIN_PLANE_M`]). A box or a person in
+/// front of a wall; TPO planes reach the floor and the ceiling and are wide, and a door's
+/// opening is farther than its wall, not nearer. A run at the image edge has a neighbour on
+/// one side only and is kept: a wall beside a door's opening looks the same there.
+pub fn occluders(bins: &[Bin]) -> u64 {
+    let pts: Vec<(usize, [f64; 2])> =
+        bins.iter().enumerate().take(64).filter_map(|(b, x)| x.point.map(|p| (b, p))).collect();
+    let mut mask = 0u64;
+    let mut start = 0;
+    while start < pts.len() {
+        let mut end = start + 1;
+        while end < pts.len() && !depth_step(range(pts[end - 1].1), range(pts[end].1)) {
+            end += 1;
+        }
+        // run pts[start..end]
+        if start > 0 && end < pts.len() {
+            let run = &pts[start..end];
+            let nearer_than = |q: [f64; 2], p: [f64; 2]| range(p) < range(q);
+            let (first, last) = (run[0].1, run[run.len() - 1].1);
+            let width = (last[0] - first[0]).hypot(last[1] - first[1]);
+            if nearer_than(pts[start - 1].1, first) && nearer_than(pts[end].1, last) && width < MIN_PLANE_M {
+                for &(b, _) in run {
+                    mask |= 1 << b;
+                }
+            }
+        }
+        start = end;
+    }
+    mask
+}
+
+/// A wall along the heading beyond which the camera sees a parallel one: the partner of a
+/// corridor's wall, of which an obstacle or the camera's turn may leave only a few bins in view.
+/// Fitted with the direction of `first` (only its offset is free), so [`PARTNER_POINTS`] points
+/// spanning [`PARTNER_M`] suffice; it must lie on the other side of the camera.
+fn partner(bins: &[Bin], free: u64, first: &Line) -> Option<Line> {
+    if first.heading_angle_deg() > PARTNER_MAX_DEG {
+        return None;
+    }
+    let side = |p: [f64; 2]| (p[0] - first.centre[0]) * first.dir[1] - (p[1] - first.centre[1]) * first.dir[0];
+    let camera = side([0.0, 0.0]);
+    let mut best: Option<(usize, f64, u64)> = None;
+    for (b, bin) in bins.iter().enumerate().take(64) {
+        let Some(p) = bin.point.filter(|_| free >> b & 1 == 1) else { continue };
+        // beyond the camera, seen from the first wall
+        if side(p) * camera <= 0.0 || side(p).abs() < camera.abs() + 0.3 {
+            continue;
+        }
+        let line = Line { centre: p, dir: first.dir, ..Line::default() };
+        let m = inliers_of(bins, free, &line);
+        let cost: f64 = (0..bins.len())
+            .filter(|&q| m >> q & 1 == 1)
+            .filter_map(|q| bins[q].point)
+            .map(|q| (line.distance(q) / tolerance(range(q))).powi(2))
+            .sum();
+        let n = m.count_ones() as usize;
+        if best.is_none_or(|(bn, bc, _)| n > bn || (n == bn && cost < bc)) {
+            best = Some((n, cost, m));
+        }
+    }
+    let (n, _, mask) = best?;
+    if n < PARTNER_POINTS {
+        return None;
+    }
+    // the offset is the inliers' mean distance across the direction; the extent along it
+    let pts: Vec<[f64; 2]> = (0..bins.len()).filter(|&q| mask >> q & 1 == 1).filter_map(|q| bins[q].point).collect();
+    let nf = pts.len() as f64;
+    let centre = [pts.iter().map(|p| p[0]).sum::<f64>() / nf, pts.iter().map(|p| p[1]).sum::<f64>() / nf];
+    let along = |p: &[f64; 2]| (p[0] - centre[0]) * first.dir[0] + (p[1] - centre[1]) * first.dir[1];
+    let lo = pts.iter().map(along).fold(f64::INFINITY, f64::min);
+    let hi = pts.iter().map(along).fold(f64::NEG_INFINITY, f64::max);
+    (hi - lo >= PARTNER_M).then_some(Line { centre, dir: first.dir, inliers: mask, extent: [lo, hi] })
+}
+
+/// See [`partner`]: the first plane runs within this angle of the heading, degrees; the partner
+/// holds at least this many points spanning at least this length, m.
+pub const PARTNER_MAX_DEG: f64 = 25.0;
+pub const PARTNER_POINTS: usize = 2;
+pub const PARTNER_M: f64 = 0.5;
+
 impl TpoModel {
-    /// Fits the model to the envelope points within [`FIT_RANGE_M`] (at most 64 bins).
+    /// Fits the model to the envelope points within [`FIT_RANGE_M`] (at most 64 bins) that are
+    /// not on an occluder.
     pub fn fit(bins: &[Bin]) -> Self {
+        let occluded = occluders(bins);
         let mut free = 0u64;
         for (b, bin) in bins.iter().enumerate().take(64) {
-            if bin.point.is_some_and(|p| range(p) <= FIT_RANGE_M) {
+            if bin.point.is_some_and(|p| range(p) <= FIT_RANGE_M) && occluded >> b & 1 == 0 {
                 free |= 1 << b;
             }
         }
-        let first = best_line(bins, free, MIN_PLANE_M);
-        let second = first.and_then(|l| best_line(bins, free & !l.inliers, MIN_PLANE_M));
-        match split(bins, free, &[first, second]) {
-            Some([a, b]) => Self { lines: [Some(a), Some(b)] },
-            None => Self { lines: [first, second] },
+        let first = best_line(bins, free, occluded, MIN_PLANE_M);
+        let second = first.and_then(|l| {
+            best_line(bins, free & !l.inliers, occluded, MIN_PLANE_M).or_else(|| partner(bins, free & !l.inliers, &l))
+        });
+        match split(bins, free, occluded, &[first, second]) {
+            Some([a, b]) => Self { lines: [Some(a), Some(b)], occluded },
+            None => Self { lines: [first, second], occluded },
         }
     }
 
@@ -326,8 +486,12 @@ impl TpoModel {
     }
 }
 
-/// The obstacle test: range `r` is clearly nearer than the reference range `reference`.
+/// The obstacle test: range `r` is clearly nearer than the reference range `reference`
+/// (always, for a finite `r`, when the reference is infinite: no TPO surface there).
 pub fn clearly_nearer(r: f64, reference: f64) -> bool {
+    if reference == f64::INFINITY {
+        return r.is_finite();
+    }
     reference - r > (0.2 * reference).max(0.3)
 }
 
@@ -400,7 +564,7 @@ impl Features {
             .filter(|l| l.heading_angle_deg() >= 30.0)
             .filter_map(|l| l.hit(0.0, 1.0))
             .min_by(f64::total_cmp);
-        let (gap_m, gap_bearings) = Self::widest_gap(bins, &planes);
+        let (gap_m, gap_bearings) = Self::widest_gap(bins, &planes, model.occluded);
         let heading_in_gap = gap_bearings.is_some_and(|[lo, hi]| lo <= 0.0 && 0.0 <= hi);
         // through a gap, the next plane behind it (if any)
         let open_ahead = if heading_in_gap {
@@ -416,9 +580,13 @@ impl Features {
             [a, b] if pair_angle_deg >= 5.0 => intersect(a, b),
             _ => None,
         };
+        // how far `p` lies beyond the plane's seen extent, unless an occluder hides the stretch
         let outside = |l: &Line, p: [f64; 2]| {
             let s = (p[0] - l.centre[0]) * l.dir[0] + (p[1] - l.centre[1]) * l.dir[1];
-            (l.extent[0] - s).max(s - l.extent[1]).max(0.0)
+            let d = (l.extent[0] - s).max(s - l.extent[1]).max(0.0);
+            let e = if s < l.extent[0] { l.extent[0] } else { l.extent[1] };
+            let end = [l.centre[0] + e * l.dir[0], l.centre[1] + e * l.dir[1]];
+            if d > 0.0 && Self::stretch_hidden(bins, model.occluded, end, p) { 0.0 } else { d }
         };
         let meet_m = match (vertex, &planes[..]) {
             (Some(v), [a, b]) => outside(a, v).max(outside(b, v)).min(OPEN_AHEAD_MAX_M),
@@ -440,10 +608,35 @@ impl Features {
         }
     }
 
+    /// Whether the stretch of a plane from the end of its seen extent `end` to the point `v`
+    /// (where it meets another) is hidden by an occluder: the bins whose bearings lie between
+    /// (leaving out half a bin at `v`) include occluded ones and show nothing else. Behind a
+    /// person the planes may well reach their crossing: a corner's edge hidden.
+    fn stretch_hidden(bins: &[Bin], occluded: u64, end: [f64; 2], v: [f64; 2]) -> bool {
+        let half = if bins.len() > 1 {
+            0.5 * (bins[0].bearing - bins[bins.len() - 1].bearing).abs() / (bins.len() - 1) as f64
+        } else {
+            0.0
+        };
+        let (a, bv) = (end[1].atan2(end[0]), v[1].atan2(v[0]));
+        let (lo, hi) = if a < bv { (a, bv - half) } else { (bv + half, a) };
+        let mut any = false;
+        for (b, bin) in bins.iter().enumerate().take(64) {
+            if bin.bearing <= lo || bin.bearing >= hi || bin.point.is_none() {
+                continue;
+            }
+            if occluded >> b & 1 == 0 {
+                return false;
+            }
+            any = true;
+        }
+        any
+    }
+
     /// The widest gap (m) between consecutive inlier bins of one plane where some bin between
     /// shows a surface clearly beyond the plane and none is nearer than it; and the bearings
     /// `[right, left]` of the gap's edges.
-    fn widest_gap(bins: &[Bin], planes: &[&Line]) -> (f64, Option<[f64; 2]>) {
+    fn widest_gap(bins: &[Bin], planes: &[&Line], occluded: u64) -> (f64, Option<[f64; 2]>) {
         let mut best = (0.0, None);
         for l in planes {
             let idx: Vec<usize> = (0..bins.len()).filter(|&b| l.inliers >> b & 1 == 1).collect();
@@ -454,9 +647,19 @@ impl Features {
                 }
                 let mut beyond = false;
                 let mut blocked = false;
-                for bin in &bins[i + 1..j] {
+                for (k, bin) in bins.iter().enumerate().take(j).skip(i + 1) {
                     let (Some(p), Some(h)) = (bin.point, l.hit(bin.bearing, 2.0)) else { continue };
+                    let near_occluder = |x: usize| x < 64 && occluded >> x & 1 == 1;
+                    if near_occluder(k) {
+                        // an obstacle in front of the opening hides it, does not close it
+                        continue;
+                    }
                     let r = range(p);
+                    if near_occluder(k + 1) || (k > 0 && near_occluder(k - 1)) {
+                        // the occluder's outline: its flow mixes with what lies behind
+                        beyond |= r - h > (0.15 * h).max(0.4);
+                        continue;
+                    }
                     beyond |= r - h > (0.15 * h).max(0.4);
                     blocked |= clearly_nearer(r, h);
                 }
@@ -486,6 +689,71 @@ mod tests {
 
     fn bins_on(points: &[[f64; 2]]) -> Vec<Bin> {
         points.iter().map(|&p| Bin { point: Some(p), bearing: p[1].atan2(p[0]) }).collect()
+    }
+
+    #[test]
+    fn an_occluder_is_left_out_of_the_fit_and_does_not_close_a_door() {
+        // wall at 3 m, a person (0.4 m wide) 1.5 m ahead in front of it
+        let mut pts: Vec<[f64; 2]> = (0..16).map(|k| [3.0, 1.4 - k as f64 * 0.19]).collect();
+        for (k, p) in pts.iter_mut().enumerate().take(9).skip(6) {
+            *p = [1.5, 0.5 * (1.4 - k as f64 * 0.19)];
+        }
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        assert_eq!(m.occluded, 0b1_1100_0000, "{m:?}");
+        assert!(m.lines[0].is_some_and(|l| l.count() == 13) && m.lines[1].is_none(), "{m:?}");
+        assert!((m.expected_range(&bins, 7) - 3.0).abs() < 0.05);
+        let f = Features::compute(&bins, &m);
+        assert_eq!((f.planes, f.gap_m), (1.0, 0.0), "{f:?}");
+        // the same wall with a 1.3 m opening (back wall at 6 m), the person in front of it
+        let pts: Vec<[f64; 2]> = (0..16)
+            .map(|k| {
+                let y = 1.4 - k as f64 * 0.19;
+                match k {
+                    6..=8 => [1.5, y * 0.5],
+                    5 | 9 | 10 => [6.0, y * 2.0],
+                    _ => [3.0, y],
+                }
+            })
+            .collect();
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        let f = Features::compute(&bins, &m);
+        assert!((0.9..1.8).contains(&f.gap_m) && (f.front_m - 3.0).abs() < 0.05, "{f:?} {m:?}");
+    }
+
+    #[test]
+    fn a_corridor_wall_hidden_but_for_two_bins_is_found_as_the_partner() {
+        let mut pts = Vec::new();
+        for k in 0..10 {
+            pts.push(Some([1.5 + k as f64 * 0.5, 1.0]));
+        }
+        pts.extend([None, None, None, None]);
+        pts.extend([Some([2.5, -1.0]), Some([2.0, -1.0])]);
+        let bins: Vec<Bin> =
+            pts.iter().map(|p| Bin { point: *p, bearing: p.map_or(0.0, |p: [f64; 2]| p[1].atan2(p[0])) }).collect();
+        let m = TpoModel::fit(&bins);
+        let f = Features::compute(&bins, &m);
+        assert_eq!((f.planes, f.opposite), (2.0, 1.0), "{f:?}");
+        assert!(f.pair_angle_deg < 1.0 && f.side_angle_deg < 1.0, "{f:?}");
+        // one wall alone has no partner
+        let bins: Vec<Bin> = bins.into_iter().take(10).collect();
+        assert_eq!(Features::compute(&bins, &TpoModel::fit(&bins)).planes, 1.0);
+    }
+
+    #[test]
+    fn a_corner_bends_depth_noise_on_a_wall_does_not() {
+        let all = (1u64 << 16) - 1;
+        // a 90° corner 3 m ahead: both walls at 45° to the heading
+        let corner: Vec<[f64; 2]> = (0..16).map(|k| 1.6 - k as f64 * 0.2).map(|y: f64| [3.0 - y.abs(), y]).collect();
+        assert!(bent(&bins_on(&corner), all));
+        // a frontal wall at 1.4 m with ±0.12 m of alternating depth noise
+        let noisy: Vec<[f64; 2]> =
+            (0..16).map(|k| [1.4 + if k % 2 == 0 { 0.12 } else { -0.12 }, 0.7 - k as f64 * 0.09]).collect();
+        assert!(!bent(&bins_on(&noisy), all));
+        // and no corner is split out of it
+        let m = TpoModel::fit(&bins_on(&noisy));
+        assert!(m.planes().all(|l| l.heading_angle_deg() > 80.0), "{m:?}");
     }
 
     #[test]
