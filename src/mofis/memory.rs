@@ -160,7 +160,7 @@ const SECTORS: usize = 24;
 /// The sector of `bearing` within a field of view of `±half_fov`, if inside.
 fn sector(bearing: f64, half_fov: f64) -> Option<usize> {
     let x = (bearing + half_fov) / (2.0 * half_fov) * SECTORS as f64;
-    (x >= 0.0 && x < SECTORS as f64).then(|| x as usize)
+    (x >= 0.0 && x < SECTORS as f64).then_some(x as usize)
 }
 
 impl ObstacleMemory {

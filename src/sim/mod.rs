@@ -448,23 +448,23 @@ pub async fn run(
                 setpoint
             }
         };
-        if tracing::enabled!(target: "flownav::sim::frames", tracing::Level::TRACE) {
-            if let Some(o) = &last_output {
-                let t = truth.frame(pose);
-                let ob = &o.perception.obstacle;
-                let pts = pipeline.surface_points();
-                let near = pts
-                    .iter()
-                    .map(|p| (p.forward.hypot(p.left), p.left.atan2(p.forward)))
-                    .fold((f64::INFINITY, 0.0), |a, b| if b.0 < a.0 { b } else { a });
-                let odo = odometry;
-                tracing::trace!(
-                    target: "flownav::sim::frames",
-                    "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3}",
-                    pose.x, pose.y, pose.yaw, o.perception.tpo.shape, t.tpo.shape, ob.distance_m, ob.bearing_rad,
-                    t.obstacle.distance_m, t.obstacle.bearing_rad, o.avoided.distance_m, o.avoided.bearing_rad, setpoint.v, setpoint.omega, pts.len(), near.0, near.1, odo.v, odo.omega
-                );
-            }
+        if tracing::enabled!(target: "flownav::sim::frames", tracing::Level::TRACE)
+            && let Some(o) = &last_output
+        {
+            let t = truth.frame(pose);
+            let ob = &o.perception.obstacle;
+            let pts = pipeline.surface_points();
+            let near = pts
+                .iter()
+                .map(|p| (p.forward.hypot(p.left), p.left.atan2(p.forward)))
+                .fold((f64::INFINITY, 0.0), |a, b| if b.0 < a.0 { b } else { a });
+            let odo = odometry;
+            tracing::trace!(
+                target: "flownav::sim::frames",
+                "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3}",
+                pose.x, pose.y, pose.yaw, o.perception.tpo.shape, t.tpo.shape, ob.distance_m, ob.bearing_rad,
+                t.obstacle.distance_m, t.obstacle.bearing_rad, o.avoided.distance_m, o.avoided.bearing_rad, setpoint.v, setpoint.omega, pts.len(), near.0, near.1, odo.v, odo.omega
+            );
         }
         if let Some(p) = pipeline.pafsis_mut() {
             for ev in p.take_events() {
