@@ -10,8 +10,9 @@ use crate::motion::{BodyVelocity, Odometry};
 use std::future::Future;
 use std::time::Duration;
 
-/// Health flags a base reports (FNP/1 STATUS, Kobuki sensor data).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+/// Health flags a base reports (FNP/1 STATUS, Kobuki sensor data). Serialised as is on the
+/// `/base/status` log topic.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BaseStatus {
     /// Host monotonic time when the status arrived, ns.
     pub t_ns: u64,

@@ -39,48 +39,8 @@ pub struct SetpointLog {
     pub requested: Option<BodyVelocity>,
 }
 
-/// `hal::BaseStatus` in a serialisable form (the hal type carries no serde derive).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct BaseStatusLog {
-    pub t_ns: u64,
-    pub battery_v: Option<f64>,
-    pub bumper: bool,
-    pub estop: bool,
-    pub stopped_by_watchdog: bool,
-    pub motor_fault: bool,
-    pub cliff: bool,
-    pub wheel_drop: bool,
-}
-
-impl From<&BaseStatus> for BaseStatusLog {
-    fn from(s: &BaseStatus) -> Self {
-        Self {
-            t_ns: s.t_ns,
-            battery_v: s.battery_v,
-            bumper: s.bumper,
-            estop: s.estop,
-            stopped_by_watchdog: s.stopped_by_watchdog,
-            motor_fault: s.motor_fault,
-            cliff: s.cliff,
-            wheel_drop: s.wheel_drop,
-        }
-    }
-}
-
-impl From<BaseStatusLog> for BaseStatus {
-    fn from(s: BaseStatusLog) -> Self {
-        Self {
-            t_ns: s.t_ns,
-            battery_v: s.battery_v,
-            bumper: s.bumper,
-            estop: s.estop,
-            stopped_by_watchdog: s.stopped_by_watchdog,
-            motor_fault: s.motor_fault,
-            cliff: s.cliff,
-            wheel_drop: s.wheel_drop,
-        }
-    }
-}
+/// `/base/status`: the base's health flags exactly as [`hal::BaseStatus`] holds them.
+pub type BaseStatusLog = BaseStatus;
 
 /// `/offis/perception`: the [`Perception`] fields at the top level plus free-form `attributes`
 /// (OFFIS intermediate values: plane/tilt matrices, classifier degrees, ...).

@@ -183,7 +183,7 @@ impl LogHandle {
 
     /// `/base/status` (JSON), stamped with `status.t_ns`.
     pub fn base_status(&self, status: &BaseStatus) -> bool {
-        self.push(Item::Status(status.into()))
+        self.push(Item::Status(*status))
     }
 
     /// `/tf` (`foxglove.FrameTransform`): the robot pose, `odom → base_link`.
