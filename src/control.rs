@@ -12,7 +12,8 @@ use serde::{Deserialize, Serialize};
 pub struct ControlLimits {
     /// Maximum forward speed, m/s.
     pub max_speed: f64,
-    /// Maximum backward speed, m/s (0: never reverse; the camera cannot see behind).
+    /// Maximum backward speed, m/s. Only the stall recovery reverses, backing off a few cm the
+    /// way the robot came (the camera cannot see behind); 0 forbids that too.
     pub max_reverse_speed: f64,
     /// Maximum turn rate, rad/s (either direction).
     pub max_turn_rate: f64,
@@ -28,7 +29,7 @@ impl Default for ControlLimits {
     fn default() -> Self {
         Self {
             max_speed: 0.5,
-            max_reverse_speed: 0.0,
+            max_reverse_speed: 0.1,
             max_turn_rate: 1.0,
             max_linear_accel: 0.5,
             max_linear_decel: 1.0,

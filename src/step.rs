@@ -21,6 +21,7 @@
 use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
 use crate::mofis::memory::ObstacleMemory;
+use crate::mofis::stall::{Manoeuvre, StallRecovery};
 use crate::mofis::{Mofis, MofisError, MofisOutput};
 use crate::offis::points::SurfacePoint;
 use crate::offis::{Offis, OffisError};
@@ -65,6 +66,8 @@ const CENTRE_WINDOW_M: f64 = 1.5;
 const CENTRE_REACH_M: f64 = 0.9;
 const CENTRE_LOOKAHEAD_M: f64 = 1.5;
 const CENTRE_MAX_RAD: f64 = 0.3;
+/// A stalled robot compares the free path this far to either side, rad.
+const STALL_PROBE_RAD: f64 = 0.8;
 
 /// The `[pairing]` config table: how far back the older frame of each pair lies.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -163,6 +166,9 @@ pub struct Pipeline {
     key: Option<Keyframe>,
     /// MOFIS's sensing range (the free path is measured up to it), m.
     mofis_range: f64,
+    stall: StallRecovery,
+    /// The set-point of the previous step (what the odometry of this step should show).
+    last_setpoint: BodyVelocity,
 }
 
 impl Pipeline {
@@ -185,6 +191,8 @@ impl Pipeline {
             pairing: cfg.pairing,
             key: None,
             mofis_range: cfg.mofis.sensing_range_m,
+            stall: StallRecovery::new(cfg.mofis.stall, cfg.control.max_reverse_speed > 0.0),
+            last_setpoint: BodyVelocity::ZERO,
             flow,
             backend,
             offis: Offis::new(cfg.offis.clone())?,
@@ -214,6 +222,12 @@ impl Pipeline {
         &self.memory
     }
 
+    /// How many times the robot found itself pushing against something and turned away
+    /// ([`crate::mofis::stall`]).
+    pub fn stall_recoveries(&self) -> u32 {
+        self.stall.recoveries()
+    }
+
     /// The PAFSIS planner, when running a mission.
     pub fn pafsis(&self) -> Option<&Pafsis> {
         match &self.navigator {
@@ -239,6 +253,8 @@ impl Pipeline {
     pub fn fail_safe(&mut self) -> BodyVelocity {
         self.key = None;
         self.memory.clear();
+        self.stall.reset();
+        self.last_setpoint = BodyVelocity::ZERO;
         self.mofis.fallback()
     }
 
@@ -299,6 +315,26 @@ impl Pipeline {
         self.offis.surface_points([m.x_m, m.y_m, m.z_m], min_radial, max_tangential, &mut self.points);
         self.memory.update(odometry, frame_dt, &self.points, measured);
         let avoided = self.memory.threat();
+        // pushing against something unseen: turn away on the spot, to the freer side
+        let memory = &self.memory;
+        let turn_away = self.stall.update(self.last_setpoint, odometry, frame_dt, || {
+            let (left, right) = (
+                memory.free_distance(STALL_PROBE_RAD, STEER_LOOKAHEAD_M),
+                memory.free_distance(-STALL_PROBE_RAD, STEER_LOOKAHEAD_M),
+            );
+            match left - right {
+                d if d > memory.params().cell_m => 1.0,
+                d if d < -memory.params().cell_m => -1.0,
+                _ => goal.angle_rad.signum(),
+            }
+        });
+        let goal = match turn_away {
+            Some(m) if goal.status == GoalStatus::Active => match m {
+                Manoeuvre::Reverse(speed) => Goal { velocity: -speed, angle_rad: 0.0, ..goal },
+                Manoeuvre::Turn(angle_rad) => Goal { velocity: 0.0, angle_rad, ..goal },
+            },
+            _ => goal,
+        };
         // turns on the spot keep their angle; driving picks a free heading
         let steered = match goal.velocity > 0.0 {
             true => {
@@ -313,6 +349,7 @@ impl Pipeline {
         let front = self.memory.free_distance(0.0, self.mofis_range) - self.memory.params().robot_radius_m;
         let view = Perception { obstacle: avoided, ..perception.clone() };
         let mofis = self.mofis.step_with_front(&view, Some(front.max(0.0)), &steered, frame_dt)?;
+        self.last_setpoint = mofis.setpoint;
         Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, mofis }))
     }
 

@@ -16,6 +16,7 @@
 //! limits. Without perception ([`Mofis::fallback`]) the set-point is an immediate stop.
 
 pub mod memory;
+pub mod stall;
 
 use crate::config::ConfigError;
 use crate::control::{ControlLimits, Limiter};
@@ -46,6 +47,9 @@ pub struct MofisParams {
     /// `[mofis.memory]`: the obstacle memory that turns OFFIS's surface points into the
     /// obstacle avoided ([`memory`]).
     pub memory: memory::MemoryParams,
+    /// `[mofis.stall]`: turning away when the wheels push against something unseen
+    /// ([`stall`]).
+    pub stall: stall::StallParams,
 }
 
 impl Default for MofisParams {
@@ -57,6 +61,7 @@ impl Default for MofisParams {
             unknown_obstacle_distance_m: 1.5,
             dead_ahead_rad: 0.05,
             memory: memory::MemoryParams::default(),
+            stall: stall::StallParams::default(),
         }
     }
 }
@@ -82,7 +87,7 @@ impl MofisParams {
         if let Err((field, problem)) = self.memory.check() {
             return bad(&format!("memory.{field}"), problem);
         }
-        Ok(())
+        self.stall.validate()
     }
 }
 
@@ -305,7 +310,9 @@ impl Mofis {
             let max_turn = self.limiter.limits().max_turn_rate;
             let goal_omega = (self.params.heading_gain * goal.angle_rad).clamp(-max_turn, max_turn);
             BodyVelocity {
-                v: goal.velocity * avoidance.speed,
+                // backing off (stall recovery, the way it came): the camera sees nothing behind,
+                // so avoidance has nothing to say about it
+                v: if goal.velocity < 0.0 { goal.velocity } else { goal.velocity * avoidance.speed },
                 omega: (1.0 - weight) * goal_omega + weight * avoidance.turn * max_turn,
             }
         } else {

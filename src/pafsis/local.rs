@@ -273,6 +273,9 @@ pub struct Pafsis {
     next_door: usize,
     doors_sighted: usize,
     heading_rad: f64,
+    /// Dead-reckoned position in the map frame, m: from the start place's position and the
+    /// odometry (`None` when the map gives the start place no position).
+    position_m: Option<[f64; 2]>,
     /// The TPO shape seen in the last consecutive frames, and how many.
     streak: (TpoShape, u32),
     door_sighting_reported: bool,
@@ -296,6 +299,7 @@ impl Pafsis {
             .or_else(|| plan.edges.first().map(|&k| map.edges[k].heading_deg.to_radians()))
             .unwrap_or(0.0);
         let legs = unroll(&map, &plan, start_heading);
+        let position_m = map.place(&mission.from).and_then(|p| p.position_m);
         let mut me = Self {
             map,
             mission,
@@ -307,6 +311,7 @@ impl Pafsis {
             next_door: 0,
             doors_sighted: 0,
             heading_rad: wrap_angle(start_heading),
+            position_m,
             streak: (TpoShape::None, 0),
             door_sighting_reported: false,
             tracking: None,
@@ -367,6 +372,11 @@ impl Pafsis {
         if !(dt.is_finite() && dt > 0.0 && odo.v.is_finite() && odo.omega.is_finite()) {
             return;
         }
+        let mid = self.heading_rad + 0.5 * odo.omega * dt;
+        if let Some([x, y]) = &mut self.position_m {
+            *x += odo.v * dt * mid.cos();
+            *y += odo.v * dt * mid.sin();
+        }
         self.heading_rad = wrap_angle(self.heading_rad + odo.omega * dt);
         if let Some(leg) = self.legs.get(self.leg)
             && !matches!(leg.kind, LegKind::Turn)
@@ -394,6 +404,7 @@ impl Pafsis {
         self.advance_odometry(odo, dt);
         if let Some(h) = hint.filter(|h| h.heading_rad.is_finite()) {
             self.heading_rad = wrap_angle(h.heading_rad);
+            self.position_m = Some([h.x, h.y]);
         }
         if self.status != GoalStatus::Active {
             return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
@@ -411,7 +422,17 @@ impl Pafsis {
         if self.status != GoalStatus::Active {
             return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
         }
-        self.command(perception, hint)
+        let dead_reckoned = match (self.params.cross_track_odometry, self.position_m) {
+            (true, Some([x, y])) => Some(PoseHint { x, y, heading_rad: self.heading_rad }),
+            _ => None,
+        };
+        self.command(perception, hint.or(dead_reckoned))
+    }
+
+    /// The dead-reckoned position in the map frame, m (module doc of [`PafsisParams`]'s
+    /// `cross_track_odometry`); `None` when the start place has no position.
+    pub fn position_m(&self) -> Option<[f64; 2]> {
+        self.position_m
     }
 
     /// Updates the shape streak and handles door sightings on corridor legs.

@@ -42,8 +42,13 @@ pub struct PafsisParams {
     pub miss_factor: f64,
     /// Replans allowed before the mission fails.
     pub max_replans: u32,
-    /// Lookahead of the cross-track correction when a pose hint is given, m.
+    /// Lookahead of the cross-track correction, m.
     pub lookahead_m: f64,
+    /// Steer back to the leg's line from the odometry alone (dead reckoning from the start
+    /// place's position) when the map has positions and no pose hint is given: after passing
+    /// an obstacle the robot returns to the corridor's centre line instead of running on along
+    /// whatever side it swerved to.
+    pub cross_track_odometry: bool,
 }
 
 impl Default for PafsisParams {
@@ -62,6 +67,7 @@ impl Default for PafsisParams {
             miss_factor: 1.5,
             max_replans: 3,
             lookahead_m: 1.5,
+            cross_track_odometry: true,
         }
     }
 }

@@ -174,6 +174,8 @@ pub struct SimSummary {
     pub frames: u64,
     /// Steps that failed and were answered with a zero set-point.
     pub failsafe_stops: u64,
+    /// Times the robot found itself pushing against something and turned away.
+    pub stall_recoveries: u32,
     /// Frames in which OFFIS saw each TPO class, in `TpoShape::ALL` order (wall, corner, door,
     /// corridor, none).
     pub tpo_frames: [u64; 5],
@@ -461,9 +463,11 @@ pub async fn run(
             let odo = odometry;
             tracing::trace!(
                 target: "flownav::sim::frames",
-                "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3}",
+                "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3} goal_a={:.3} est_yaw={:.3} leg={}",
                 pose.x, pose.y, pose.yaw, o.perception.tpo.shape, t.tpo.shape, ob.distance_m, ob.bearing_rad,
-                t.obstacle.distance_m, t.obstacle.bearing_rad, o.avoided.distance_m, o.avoided.bearing_rad, setpoint.v, setpoint.omega, pts.len(), near.0, near.1, odo.v, odo.omega
+                t.obstacle.distance_m, t.obstacle.bearing_rad, o.avoided.distance_m, o.avoided.bearing_rad, setpoint.v, setpoint.omega, pts.len(), near.0, near.1, odo.v, odo.omega,
+                o.goal.angle_rad, pipeline.pafsis().map_or(f64::NAN, |p| p.progress().heading_rad),
+                pipeline.pafsis().map_or(0, |p| p.progress().leg)
             );
         }
         if let Some(p) = pipeline.pafsis_mut() {
@@ -544,6 +548,7 @@ pub async fn run(
         goal_error_m: round3(goal_error_m),
         frames,
         failsafe_stops,
+        stall_recoveries: pipeline.stall_recoveries(),
         tpo_frames,
         doors_matched,
         landmarks_missed,
