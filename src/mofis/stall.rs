@@ -152,7 +152,7 @@ impl StallRecovery {
         free_side: impl FnOnce() -> f64,
     ) -> Option<Manoeuvre> {
         let p = self.params;
-        if !p.enabled || !(dt.is_finite() && dt > 0.0) {
+        if !(p.enabled && dt.is_finite() && dt > 0.0) {
             return None;
         }
         let measured = if measured.v.is_finite() && measured.omega.is_finite() { Some(measured) } else { None };
@@ -162,7 +162,8 @@ impl StallRecovery {
                     commanded.v >= p.min_command_mps && measured.is_some_and(|m| m.v.abs() < p.max_ratio * commanded.v);
                 let stalled_s = if pushing { stalled_s + dt } else { 0.0 };
                 self.phase = Phase::Watching { stalled_s };
-                if stalled_s < p.after_s {
+                // (a tolerance so that 15 steps of 1/30 s make the 0.5 s they should)
+                if stalled_s < p.after_s - 1e-9 {
                     return None;
                 }
                 let side = if free_side() < 0.0 { -1.0 } else { 1.0 };
@@ -277,8 +278,9 @@ mod tests {
             left = a;
             n += 1;
         }
-        let expected = (p.turn_rad / (0.6 * DT)).floor() as i32;
-        assert!((n - expected).abs() <= 1, "{n} turning steps, expected about {expected}");
+        // it stops once less than 0.02 rad (one step here) is left
+        let turned = n as f64 * 0.6 * DT;
+        assert!((turned - p.turn_rad).abs() <= 0.05, "turned {turned} rad in {n} steps, asked {}", p.turn_rad);
         assert!(!s.recovering());
         // driving again: a new stall needs the full time again
         assert_eq!(s.update(v(0.3, 0.0), v(0.0, 0.0), DT, || 1.0), None);
