@@ -327,7 +327,7 @@ pub const BEND_MAX_Z: f64 = -1.2;
 pub const SPLIT_MARGIN: f64 = 1.0;
 pub const CORNER_SIDE_M: f64 = 0.5;
 /// ... or this much when an occluder stands between the two walls.
-pub const CORNER_SIDE_HIDDEN_M: f64 = 0.25;
+pub const CORNER_SIDE_HIDDEN_M: f64 = 0.15;
 pub const SPLIT_MIN_DEG: f64 = 12.0;
 
 /// The TPO's planes: up to two lines on the floor plan.
@@ -705,7 +705,7 @@ impl Features {
             let d = (l.extent[0] - s).max(s - l.extent[1]).max(0.0);
             let e = if s < l.extent[0] { l.extent[0] } else { l.extent[1] };
             let end = [l.centre[0] + e * l.dir[0], l.centre[1] + e * l.dir[1]];
-            if d > 0.0 && Self::stretch_hidden(bins, model.occluded, end, p) { 0.0 } else { d }
+            if d > 0.0 && Self::stretch_hidden(bins, model.occluded, end, p, l.inliers) { 0.0 } else { d }
         };
         let meet_m = match (vertex, &planes[..]) {
             (Some(v), [a, b]) => outside(a, v).max(outside(b, v)).min(OPEN_AHEAD_MAX_M),
@@ -740,9 +740,10 @@ impl Features {
 
     /// Whether the stretch of a plane from the end of its seen extent `end` to the point `v`
     /// (where it meets another) is hidden by an occluder: the bins whose bearings lie between
-    /// (leaving out half a bin at `v`) include occluded ones and show nothing else. Behind a
+    /// (leaving out half a bin at `v`, and the plane's own inliers `own`: the bin of its end
+    /// point may reach past `end`) include occluded ones and show nothing else. Behind a
     /// person the planes may well reach their crossing: a corner's edge hidden.
-    fn stretch_hidden(bins: &[Bin], occluded: u64, end: [f64; 2], v: [f64; 2]) -> bool {
+    fn stretch_hidden(bins: &[Bin], occluded: u64, end: [f64; 2], v: [f64; 2], own: u64) -> bool {
         let half = if bins.len() > 1 {
             0.5 * (bins[0].bearing - bins[bins.len() - 1].bearing).abs() / (bins.len() - 1) as f64
         } else {
@@ -752,7 +753,7 @@ impl Features {
         let (lo, hi) = if a < bv { (a, bv - half) } else { (bv + half, a) };
         let mut any = false;
         for (b, bin) in bins.iter().enumerate().take(64) {
-            if bin.bearing <= lo || bin.bearing >= hi || bin.point.is_none() {
+            if bin.bearing <= lo || bin.bearing >= hi || bin.point.is_none() || own >> b & 1 == 1 {
                 continue;
             }
             if occluded >> b & 1 == 0 {
