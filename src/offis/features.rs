@@ -388,8 +388,30 @@ fn run_width(pts: &[(usize, [f64; 2])], [start, end]: [usize; 2]) -> f64 {
 /// it, across a depth step, and narrower than a plane ([`MIN_PLANE_M`]). A box or a person in
 /// front of a wall; TPO planes reach the floor and the ceiling and are wide, and a door's
 /// opening is farther than its wall, not nearer. A run at the image edge has a neighbour on
-/// one side only: see [`edge_candidates`] and [`TpoModel::fit`].
+/// one side only: see [`edge_candidates`] and [`TpoModel::fit`]. An occluder in front of
+/// another leaves it out of the runs, and the one behind is looked for again.
 pub fn occluders(bins: &[Bin]) -> u64 {
+    // an occluder may stand in front of another (a noisy bin in front of a person): the runs
+    // are cut again without the occluders found so far, until no new one appears
+    let mut mask = 0u64;
+    let mut view = bins.to_vec();
+    for _ in 0..3 {
+        let found = occluders_once(&view);
+        if found & !mask == 0 {
+            break;
+        }
+        mask |= found;
+        for (b, bin) in view.iter_mut().enumerate().take(64) {
+            if mask >> b & 1 == 1 {
+                bin.point = None;
+            }
+        }
+    }
+    mask
+}
+
+/// One pass of [`occluders`].
+fn occluders_once(bins: &[Bin]) -> u64 {
     let (pts, runs) = runs(bins);
     let mut mask = 0u64;
     for w in runs.windows(3) {
