@@ -15,8 +15,8 @@
 //! is a TPO plane only if its inliers span at least [`MIN_PLANE_M`] (a box face or a person is
 //! narrower). The second line is fitted to the points the first leaves (or, beside a wall along
 //! the heading, its parallel partner); a corner split replaces the two when the points bend.
-//! Occluders (narrow runs of bins in front of the surfaces on both sides, [`occluders`]) take
-//! no part in the fit.
+//! Occluders (narrow runs of bins in front of the surfaces on both sides, [`occluders`], or at
+//! the image edge in front of everything else, [`edge_candidates`]) take no part in the fit.
 //!
 //! **Features** (inputs of `rules/offis/*.toml`): how much of the view the planes cover, how
 //! many planes, their angle to each other and to the heading, whether two planes lie on
@@ -905,6 +905,18 @@ mod tests {
             })
             .collect();
         assert_eq!(edge_candidates(&bins_on(&pts)), [0, 0]);
+    }
+
+    #[test]
+    fn an_occluder_in_front_of_another_does_not_hide_it() {
+        // a wall at 3.5 m, a person at 2 m over bins 5–7, a noisy bin at 1.1 m right of it
+        let mut pts: Vec<[f64; 2]> = (0..16).map(|k| [3.5, 1.4 - k as f64 * 0.19]).collect();
+        for (k, p) in pts.iter_mut().enumerate().take(8).skip(5) {
+            *p = [2.0, (1.4 - k as f64 * 0.19) * 2.0 / 3.5];
+        }
+        pts[8] = [1.1, -0.05];
+        let m = TpoModel::fit(&bins_on(&pts));
+        assert_eq!(m.occluded, 0b1_1110_0000, "{m:?}");
     }
 
     #[test]
