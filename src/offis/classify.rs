@@ -40,7 +40,7 @@ pub enum ClassifyError {
 }
 
 /// The feature names the rule bases may use as inputs.
-pub const FEATURES: [&str; 9] = [
+pub const FEATURES: [&str; 10] = [
     "near_frac",
     "planes",
     "pair_angle_deg",
@@ -50,6 +50,7 @@ pub const FEATURES: [&str; 9] = [
     "open_ahead_m",
     "gap_m",
     "meet_m",
+    "hidden_partner",
 ];
 
 fn feature(f: &Features, k: usize) -> f64 {
@@ -62,7 +63,8 @@ fn feature(f: &Features, k: usize) -> f64 {
         5 => f.front_m,
         6 => f.open_ahead_m,
         7 => f.gap_m,
-        _ => f.meet_m,
+        8 => f.meet_m,
+        _ => f.hidden_partner,
     }
 }
 

@@ -15,8 +15,8 @@
 //! is a TPO plane only if its inliers span at least [`MIN_PLANE_M`] (a box face or a person is
 //! narrower). The second line is fitted to the points the first leaves (or, beside a wall along
 //! the heading, its parallel partner); a corner split replaces the two when the points bend.
-//! Occluders (narrow runs of bins in front of the surfaces on both sides, [`occluders`]) take
-//! no part in the fit.
+//! Occluders (narrow runs of bins in front of the surfaces on both sides, [`occluders`], or at
+//! the image edge in front of everything else, [`edge_candidates`]) take no part in the fit.
 //!
 //! **Features** (inputs of `rules/offis/*.toml`): how much of the view the planes cover, how
 //! many planes, their angle to each other and to the heading, whether two planes lie on
@@ -327,7 +327,7 @@ pub const BEND_MAX_Z: f64 = -1.2;
 pub const SPLIT_MARGIN: f64 = 1.0;
 pub const CORNER_SIDE_M: f64 = 0.5;
 /// ... or this much when an occluder stands between the two walls.
-pub const CORNER_SIDE_HIDDEN_M: f64 = 0.25;
+pub const CORNER_SIDE_HIDDEN_M: f64 = 0.15;
 pub const SPLIT_MIN_DEG: f64 = 12.0;
 
 /// The TPO's planes: up to two lines on the floor plan.
@@ -351,37 +351,111 @@ fn depth_step(a: f64, b: f64) -> bool {
     far - near > (STEP_REL * far).max(STEP_MIN_M)
 }
 
-/// Bins whose envelope points form an *occluder*: a run of bins (neighbours within a depth
-/// step of each other, empty bins skipped) that is nearer than the surfaces on both sides of
-/// it, across a depth step, and narrower than a plane ([`MIN_PLANE_M`]). A box or a person in
-/// front of a wall; TPO planes reach the floor and the ceiling and are wide, and a door's
-/// opening is farther than its wall, not nearer. A run at the image edge has a neighbour on
-/// one side only and is kept: a wall beside a door's opening looks the same there.
-pub fn occluders(bins: &[Bin]) -> u64 {
+/// The envelope points of a profile as `(bin, point)` pairs, left bin first.
+type Points = Vec<(usize, [f64; 2])>;
+
+/// The envelope points of `bins` (at most 64) cut into runs at depth steps: the points and the
+/// `[start, end)` ranges of the runs in that list.
+fn runs(bins: &[Bin]) -> (Points, Vec<[usize; 2]>) {
     let pts: Vec<(usize, [f64; 2])> =
         bins.iter().enumerate().take(64).filter_map(|(b, x)| x.point.map(|p| (b, p))).collect();
-    let mut mask = 0u64;
+    let mut out = Vec::new();
     let mut start = 0;
     while start < pts.len() {
         let mut end = start + 1;
         while end < pts.len() && !depth_step(range(pts[end - 1].1), range(pts[end].1)) {
             end += 1;
         }
-        // run pts[start..end]
-        if start > 0 && end < pts.len() {
-            let run = &pts[start..end];
-            let nearer_than = |q: [f64; 2], p: [f64; 2]| range(p) < range(q);
-            let (first, last) = (run[0].1, run[run.len() - 1].1);
-            let width = (last[0] - first[0]).hypot(last[1] - first[1]);
-            if nearer_than(pts[start - 1].1, first) && nearer_than(pts[end].1, last) && width < MIN_PLANE_M {
-                for &(b, _) in run {
-                    mask |= 1 << b;
-                }
-            }
-        }
+        out.push([start, end]);
         start = end;
     }
+    (pts, out)
+}
+
+/// The bins of the points `run` as a mask.
+fn run_mask(pts: &[(usize, [f64; 2])], [start, end]: [usize; 2]) -> u64 {
+    pts[start..end].iter().fold(0, |m, &(b, _)| m | 1 << b)
+}
+
+/// Width of the points `run` from its first to its last point, m.
+fn run_width(pts: &[(usize, [f64; 2])], [start, end]: [usize; 2]) -> f64 {
+    let (first, last) = (pts[start].1, pts[end - 1].1);
+    (last[0] - first[0]).hypot(last[1] - first[1])
+}
+
+/// Bins whose envelope points form an *occluder*: a run of bins (neighbours within a depth
+/// step of each other, empty bins skipped) that is nearer than the surfaces on both sides of
+/// it, across a depth step, and narrower than a plane ([`MIN_PLANE_M`]). A box or a person in
+/// front of a wall; TPO planes reach the floor and the ceiling and are wide, and a door's
+/// opening is farther than its wall, not nearer. A run at the image edge has a neighbour on
+/// one side only: see [`edge_candidates`] and [`TpoModel::fit`]. An occluder in front of
+/// another leaves it out of the runs, and the one behind is looked for again.
+pub fn occluders(bins: &[Bin]) -> u64 {
+    // an occluder may stand in front of another (a noisy bin in front of a person): the runs
+    // are cut again without the occluders found so far, until no new one appears
+    let mut mask = 0u64;
+    let mut view = bins.to_vec();
+    for _ in 0..3 {
+        let found = occluders_once(&view);
+        if found & !mask == 0 {
+            break;
+        }
+        mask |= found;
+        for (b, bin) in view.iter_mut().enumerate().take(64) {
+            if mask >> b & 1 == 1 {
+                bin.point = None;
+            }
+        }
+    }
     mask
+}
+
+/// One pass of [`occluders`].
+fn occluders_once(bins: &[Bin]) -> u64 {
+    let (pts, runs) = runs(bins);
+    let mut mask = 0u64;
+    for w in runs.windows(3) {
+        let [before, run, after] = [w[0], w[1], w[2]];
+        let nearer_than = |q: [f64; 2], p: [f64; 2]| range(p) < range(q);
+        if nearer_than(pts[before[1] - 1].1, pts[run[0]].1)
+            && nearer_than(pts[after[0]].1, pts[run[1] - 1].1)
+            && run_width(&pts, run) < MIN_PLANE_M
+        {
+            mask |= run_mask(&pts, run);
+        }
+    }
+    mask
+}
+
+/// The runs at the two image edges that may be occluders: narrower than a plane and nearer
+/// than their one neighbour across a depth step (`[left, right]` bin masks, 0 where not). Such
+/// a run is either an obstacle at the edge of the view or a stretch of wall beside an opening
+/// (a door's jamb); [`TpoModel::fit`] tells them apart. Nearer runs at both edges are the two
+/// sides of an opening (a door's wall, a corridor's walls), not occluders: none is returned.
+pub fn edge_candidates(bins: &[Bin]) -> [u64; 2] {
+    let (pts, runs) = runs(bins);
+    if runs.len() < 2 {
+        return [0, 0];
+    }
+    let candidate = |run: [usize; 2], neighbour: [f64; 2]| {
+        let nearest = pts[run[0]..run[1]].iter().map(|&(_, p)| range(p)).fold(f64::INFINITY, f64::min);
+        let edge_to_neighbour = if run[0] == 0 { pts[run[1] - 1].1 } else { pts[run[0]].1 };
+        if range(edge_to_neighbour) < range(neighbour)
+            && nearest < range(neighbour)
+            && run_width(&pts, run) < MIN_PLANE_M
+        {
+            run_mask(&pts, run)
+        } else {
+            0
+        }
+    };
+    let (first, last) = (runs[0], runs[runs.len() - 1]);
+    let left = candidate(first, pts[first[1]].1);
+    let right = candidate(last, pts[last[0] - 1].1);
+    if left != 0 && right != 0 {
+        return [0, 0];
+    }
+    [left, right]
 }
 
 /// A wall along the heading beyond which the camera sees a parallel one: the partner of a
@@ -398,7 +472,7 @@ fn partner(bins: &[Bin], free: u64, first: &Line) -> Option<Line> {
     for (b, bin) in bins.iter().enumerate().take(64) {
         let Some(p) = bin.point.filter(|_| free >> b & 1 == 1) else { continue };
         // beyond the camera, seen from the first wall
-        if side(p) * camera <= 0.0 || side(p).abs() < camera.abs() + 0.3 {
+        if side(p) * camera <= 0.0 || side(p).abs() < camera.abs() + PARTNER_MIN_OFFSET_M {
             continue;
         }
         let line = Line { centre: p, dir: first.dir, ..Line::default() };
@@ -432,12 +506,74 @@ fn partner(bins: &[Bin], free: u64, first: &Line) -> Option<Line> {
 pub const PARTNER_MAX_DEG: f64 = 25.0;
 pub const PARTNER_POINTS: usize = 2;
 pub const PARTNER_M: f64 = 0.5;
+/// The partner's points lie at least this far beyond the camera, m (a corridor's half width is
+/// more than that; points near the heading, where depth from flow is least reliable, are not a
+/// wall).
+pub const PARTNER_MIN_OFFSET_M: f64 = 0.5;
 
 impl TpoModel {
     /// Fits the model to the envelope points within [`FIT_RANGE_M`] (at most 64 bins) that are
-    /// not on an occluder.
+    /// not on an occluder. An edge run that may be an occluder ([`edge_candidates`]) is left out
+    /// first; it is an occluder when it stands clearly in front of every other point in view
+    /// (its median range [`clearly_nearer`] than their nearest) and a plane fitted to the rest
+    /// passes behind it (its points mostly clearly nearer than the plane's line along their
+    /// bearings) or it stands on the far side of the heading from a lone wall along it (where a
+    /// corridor's other wall would be); otherwise it is put back and the model refitted with it.
     pub fn fit(bins: &[Bin]) -> Self {
         let occluded = occluders(bins);
+        let edges = edge_candidates(bins);
+        if edges == [0, 0] {
+            return Self::fit_without(bins, occluded);
+        }
+        let model = Self::fit_without(bins, occluded | edges[0] | edges[1]);
+        // the nearest of the other points: an obstacle at the edge stands clearly in front of
+        // everything else in view, a stretch of wall beside an opening does not
+        let others = (0..bins.len().min(64))
+            .filter(|&b| (occluded | edges[0] | edges[1]) >> b & 1 == 0)
+            .filter_map(|b| bins[b].point.map(range))
+            .fold(f64::INFINITY, f64::min);
+        // the candidate's median range
+        let median = |mask: u64| {
+            let mut r: Vec<f64> = (0..bins.len().min(64))
+                .filter(|&b| mask >> b & 1 == 1)
+                .filter_map(|b| bins[b].point.map(range))
+                .collect();
+            r.sort_by(f64::total_cmp);
+            r.get(r.len() / 2).copied().unwrap_or(f64::INFINITY)
+        };
+        let in_front = |mask: u64| others.is_finite() && clearly_nearer(median(mask), others);
+        let behind = |mask: u64| {
+            let (mut n, mut nearer) = (0, 0);
+            for (b, bin) in bins.iter().enumerate().take(64) {
+                let Some(p) = bin.point.filter(|_| mask >> b & 1 == 1) else { continue };
+                n += 1;
+                let plane = model.planes().filter_map(|l| l.hit(bin.bearing, f64::INFINITY)).min_by(f64::total_cmp);
+                nearer += usize::from(plane.is_some_and(|h| clearly_nearer(range(p), h)));
+            }
+            n > 0 && 2 * nearer > n
+        };
+        // or it stands on the far side of the heading from a lone wall along it, where that
+        // wall's partner (a corridor's other wall) would be seen
+        let hides_partner = |mask: u64| {
+            let side = match model.lines {
+                [Some(l), None] if l.heading_angle_deg() <= PARTNER_MAX_DEG => l.side(),
+                _ => return false,
+            };
+            (0..bins.len().min(64))
+                .filter(|&b| mask >> b & 1 == 1)
+                .filter_map(|b| bins[b].point)
+                .all(|p| p[1] * side < 0.0)
+        };
+        let confirmed =
+            edges.iter().filter(|&&m| m != 0 && in_front(m) && (behind(m) || hides_partner(m))).fold(0, |a, &m| a | m);
+        if confirmed == edges[0] | edges[1] {
+            return model;
+        }
+        Self::fit_without(bins, occluded | confirmed)
+    }
+
+    /// The fit with the bins of `occluded` left out.
+    fn fit_without(bins: &[Bin], occluded: u64) -> Self {
         let mut free = 0u64;
         for (b, bin) in bins.iter().enumerate().take(64) {
             if bin.point.is_some_and(|p| range(p) <= FIT_RANGE_M) && occluded >> b & 1 == 0 {
@@ -525,6 +661,11 @@ pub struct Features {
     pub meet_m: f64,
     /// Forward distance to where the two planes meet, m (`None` when they do not).
     pub vertex_m: Option<f64>,
+    /// 1 when the only plane runs along the heading (within [`PARTNER_MAX_DEG`]) and an
+    /// occluder stands on the other side of the heading, where its partner would be seen (a
+    /// corridor's other wall hidden by a person or a box), else 0.
+    #[serde(default)]
+    pub hidden_partner: f64,
 }
 
 /// Where two lines meet (on the floor plan).
@@ -586,13 +727,23 @@ impl Features {
             let d = (l.extent[0] - s).max(s - l.extent[1]).max(0.0);
             let e = if s < l.extent[0] { l.extent[0] } else { l.extent[1] };
             let end = [l.centre[0] + e * l.dir[0], l.centre[1] + e * l.dir[1]];
-            if d > 0.0 && Self::stretch_hidden(bins, model.occluded, end, p) { 0.0 } else { d }
+            if d > 0.0 && Self::stretch_hidden(bins, model.occluded, end, p, l.inliers) { 0.0 } else { d }
         };
         let meet_m = match (vertex, &planes[..]) {
             (Some(v), [a, b]) => outside(a, v).max(outside(b, v)).min(OPEN_AHEAD_MAX_M),
             _ => OPEN_AHEAD_MAX_M,
         };
         let vertex_m = vertex.map(|p| p[0]).filter(|&x| x > 0.0);
+        let hidden_partner = match planes[..] {
+            [l] if l.heading_angle_deg() <= PARTNER_MAX_DEG => {
+                let across = (0..bins.len().min(64))
+                    .filter(|&b| model.occluded >> b & 1 == 1)
+                    .filter(|&b| bins[b].point.is_some_and(|p| p[1] * l.side() < 0.0))
+                    .count();
+                if across >= PARTNER_POINTS { 1.0 } else { 0.0 }
+            }
+            _ => 0.0,
+        };
         let cap = |x: Option<f64>| x.unwrap_or(OPEN_AHEAD_MAX_M).clamp(0.0, OPEN_AHEAD_MAX_M);
         Self {
             near_frac: near as f64 / nb,
@@ -605,14 +756,16 @@ impl Features {
             gap_m,
             meet_m,
             vertex_m,
+            hidden_partner,
         }
     }
 
     /// Whether the stretch of a plane from the end of its seen extent `end` to the point `v`
     /// (where it meets another) is hidden by an occluder: the bins whose bearings lie between
-    /// (leaving out half a bin at `v`) include occluded ones and show nothing else. Behind a
+    /// (leaving out half a bin at `v`, and the plane's own inliers `own`: the bin of its end
+    /// point may reach past `end`) include occluded ones and show nothing else. Behind a
     /// person the planes may well reach their crossing: a corner's edge hidden.
-    fn stretch_hidden(bins: &[Bin], occluded: u64, end: [f64; 2], v: [f64; 2]) -> bool {
+    fn stretch_hidden(bins: &[Bin], occluded: u64, end: [f64; 2], v: [f64; 2], own: u64) -> bool {
         let half = if bins.len() > 1 {
             0.5 * (bins[0].bearing - bins[bins.len() - 1].bearing).abs() / (bins.len() - 1) as f64
         } else {
@@ -622,7 +775,7 @@ impl Features {
         let (lo, hi) = if a < bv { (a, bv - half) } else { (bv + half, a) };
         let mut any = false;
         for (b, bin) in bins.iter().enumerate().take(64) {
-            if bin.bearing <= lo || bin.bearing >= hi || bin.point.is_none() {
+            if bin.bearing <= lo || bin.bearing >= hi || bin.point.is_none() || own >> b & 1 == 1 {
                 continue;
             }
             if occluded >> b & 1 == 0 {
@@ -720,6 +873,66 @@ mod tests {
         let m = TpoModel::fit(&bins);
         let f = Features::compute(&bins, &m);
         assert!((0.9..1.8).contains(&f.gap_m) && (f.front_m - 3.0).abs() < 0.05, "{f:?} {m:?}");
+    }
+
+    #[test]
+    fn an_occluder_at_the_image_edge_is_left_out_when_it_stands_in_front_of_everything() {
+        // a wall at 2 m turned 28°, a person 0.85 m ahead covering the six rightmost bins
+        let mut pts: Vec<[f64; 2]> = (0..16)
+            .map(|k| {
+                let b = (25.0 - 3.3 * k as f64).to_radians();
+                // wall: x = 2 + 0.53 y (turned), intersected with the ray at bearing b
+                let r = 2.0 / (b.cos() - 0.53 * b.sin());
+                [r * b.cos(), r * b.sin()]
+            })
+            .collect();
+        for (k, p) in pts.iter_mut().enumerate().skip(10) {
+            let b = (25.0 - 3.3 * k as f64).to_radians();
+            *p = [0.85 * b.cos(), 0.85 * b.sin()];
+        }
+        let bins = bins_on(&pts);
+        assert_eq!(edge_candidates(&bins), [0, 0b1111_1100_0000_0000]);
+        let m = TpoModel::fit(&bins);
+        assert_eq!(m.occluded, 0b1111_1100_0000_0000, "{m:?}");
+        let f = Features::compute(&bins, &m);
+        assert_eq!(f.planes, 1.0, "{f:?}");
+        assert!((f.front_m - 2.0).abs() < 0.05, "{f:?}");
+        // a door's wall at both edges with the room behind the opening: no edge occluder
+        let pts: Vec<[f64; 2]> = (0..16)
+            .map(|k| {
+                let y = 1.4 - k as f64 * 0.19;
+                if y.abs() < 1.0 { [5.0, y * 2.5] } else { [2.0, y] }
+            })
+            .collect();
+        assert_eq!(edge_candidates(&bins_on(&pts)), [0, 0]);
+    }
+
+    #[test]
+    fn an_occluder_in_front_of_another_does_not_hide_it() {
+        // a wall at 3.5 m, a person at 2 m over bins 5–7, a noisy bin at 1.1 m right of it
+        let mut pts: Vec<[f64; 2]> = (0..16).map(|k| [3.5, 1.4 - k as f64 * 0.19]).collect();
+        for (k, p) in pts.iter_mut().enumerate().take(8).skip(5) {
+            *p = [2.0, (1.4 - k as f64 * 0.19) * 2.0 / 3.5];
+        }
+        pts[8] = [1.1, -0.05];
+        let m = TpoModel::fit(&bins_on(&pts));
+        assert_eq!(m.occluded, 0b1_1110_0000, "{m:?}");
+    }
+
+    #[test]
+    fn a_lone_corridor_wall_with_an_occluder_across_the_heading_has_a_hidden_partner() {
+        // the left wall of a corridor 1 m to the left, a person 1.2 m ahead on the right edge
+        let mut pts: Vec<Option<[f64; 2]>> = (0..10).map(|k| Some([1.5 + k as f64 * 0.5, 1.0])).collect();
+        pts.extend([None, None]);
+        pts.extend((0..4).map(|k| Some([1.2, -0.2 - 0.12 * k as f64])));
+        let bins: Vec<Bin> =
+            pts.iter().map(|p| Bin { point: *p, bearing: p.map_or(0.0, |p: [f64; 2]| p[1].atan2(p[0])) }).collect();
+        let m = TpoModel::fit(&bins);
+        assert_eq!(m.occluded, 0b1111 << 12, "{m:?}");
+        let f = Features::compute(&bins, &m);
+        assert_eq!((f.planes, f.hidden_partner), (1.0, 1.0), "{f:?}");
+        let mut c = super::super::classify::Classifier::builtin().unwrap();
+        assert_eq!(c.classify(&f).unwrap().shape, crate::perception::TpoShape::Corridor);
     }
 
     #[test]
