@@ -87,6 +87,7 @@ fn summary_json_starts_with_the_contract_fields() {
         goal_error_m: 0.25,
         frames: 1246,
         failsafe_stops: 0,
+        stall_recoveries: 0,
         tpo_frames: [1, 2, 3, 4, 5],
         doors_matched: 0,
         landmarks_missed: 0,

@@ -22,6 +22,10 @@ use std::fmt;
 /// Within a streak of door frames, a door distance that grows by more than this is a new door.
 const NEW_DOOR_JUMP_M: f64 = 0.5;
 
+/// Obstacles seen nearer than this pause the cross-track correction
+/// (`PafsisParams::cross_track_hold_m`), m.
+const HOLD_LINE_RANGE_M: f64 = 2.0;
+
 /// A door the robot expects to pass (or stop at) on a corridor leg.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ExpectedDoor {
@@ -276,6 +280,11 @@ pub struct Pafsis {
     /// Dead-reckoned position in the map frame, m: from the start place's position and the
     /// odometry (`None` when the map gives the start place no position).
     position_m: Option<[f64; 2]>,
+    /// Distance driven since the start (forward or back), m.
+    odometer_m: f64,
+    /// The cross-track correction pauses until the odometer reaches this (an obstacle is being
+    /// passed), m.
+    hold_line_until_m: f64,
     /// The TPO shape seen in the last consecutive frames, and how many.
     streak: (TpoShape, u32),
     door_sighting_reported: bool,
@@ -312,6 +321,8 @@ impl Pafsis {
             doors_sighted: 0,
             heading_rad: wrap_angle(start_heading),
             position_m,
+            odometer_m: 0.0,
+            hold_line_until_m: 0.0,
             streak: (TpoShape::None, 0),
             door_sighting_reported: false,
             tracking: None,
@@ -378,6 +389,7 @@ impl Pafsis {
             *y += odo.v * dt * mid.sin();
         }
         self.heading_rad = wrap_angle(self.heading_rad + odo.omega * dt);
+        self.odometer_m += odo.v.abs() * dt;
         if let Some(leg) = self.legs.get(self.leg)
             && !matches!(leg.kind, LegKind::Turn)
         {
@@ -410,6 +422,13 @@ impl Pafsis {
             return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
         }
         self.observe(perception);
+        if let (true, Some(d)) = (perception.obstacle.present, perception.obstacle.distance_m)
+            && d.is_finite()
+            && d <= HOLD_LINE_RANGE_M
+        {
+            let until = self.odometer_m + d.max(0.0) + self.params.cross_track_hold_m;
+            self.hold_line_until_m = self.hold_line_until_m.max(until);
+        }
         // A leg may finish and the next one start within one step; bounded by the leg count.
         for _ in 0..=self.legs.len() {
             if self.status != GoalStatus::Active {
@@ -620,7 +639,9 @@ impl Pafsis {
             return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
         };
         let mut angle = wrap_angle(leg.heading_rad - self.heading_rad);
-        if let (Some(h), Some([px, py]), false) = (hint, leg.line_point_m, matches!(leg.kind, LegKind::Turn)) {
+        let holding = self.params.cross_track_hold_m > 0.0 && self.odometer_m < self.hold_line_until_m;
+        if let (Some(h), Some([px, py]), false) = (hint, leg.line_point_m, matches!(leg.kind, LegKind::Turn) || holding)
+        {
             // Signed distance of the robot left of the leg's line; steer back over a lookahead.
             let (s, c) = leg.heading_rad.sin_cos();
             let left_of_line = -(h.x - px) * s + (h.y - py) * c;

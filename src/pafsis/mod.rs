@@ -49,6 +49,10 @@ pub struct PafsisParams {
     /// an obstacle the robot returns to the corridor's centre line instead of running on along
     /// whatever side it swerved to.
     pub cross_track_odometry: bool,
+    /// After an obstacle is seen within 2 m at distance d, the cross-track correction pauses
+    /// until the robot has driven d plus this far, m: it passes the obstacle on the side it
+    /// swerved to and returns to the line behind it (0: never pause).
+    pub cross_track_hold_m: f64,
 }
 
 impl Default for PafsisParams {
@@ -68,6 +72,7 @@ impl Default for PafsisParams {
             max_replans: 3,
             lookahead_m: 1.5,
             cross_track_odometry: true,
+            cross_track_hold_m: 1.0,
         }
     }
 }
@@ -92,6 +97,9 @@ impl PafsisParams {
             if !(v.is_finite() && v > 0.0) {
                 return bad(field, "must be a positive finite number");
             }
+        }
+        if !(self.cross_track_hold_m.is_finite() && self.cross_track_hold_m >= 0.0) {
+            return bad("cross_track_hold_m", "must be a finite distance >= 0 m");
         }
         if !(0.0..=1.0).contains(&self.min_speed_fraction) {
             return bad("min_speed_fraction", "must be in [0, 1]");
