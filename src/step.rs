@@ -68,6 +68,8 @@ const CENTRE_LOOKAHEAD_M: f64 = 1.5;
 const CENTRE_MAX_RAD: f64 = 0.3;
 /// A stalled robot compares the free path this far to either side, rad.
 const STALL_PROBE_RAD: f64 = 0.8;
+/// A stall marks the obstacle memory solid over this arc in front of the robot, rad.
+const CONTACT_ARC_RAD: f64 = 0.5;
 
 /// The `[pairing]` config table: how far back the older frame of each pair lies.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -317,6 +319,7 @@ impl Pipeline {
         let avoided = self.memory.threat();
         // pushing against something unseen: turn away on the spot, to the freer side
         let memory = &self.memory;
+        let recoveries_before = self.stall.recoveries();
         let turn_away = self.stall.update(self.last_setpoint, odometry, frame_dt, || {
             let (left, right) = (
                 memory.free_distance(STALL_PROBE_RAD, STEER_LOOKAHEAD_M),
@@ -328,6 +331,10 @@ impl Pipeline {
                 _ => goal.angle_rad.signum(),
             }
         });
+        if self.stall.recoveries() > recoveries_before {
+            // what the robot pushed against is there, whether the camera saw it or not
+            self.memory.mark_contact(CONTACT_ARC_RAD);
+        }
         let goal = match turn_away {
             Some(m) if goal.status == GoalStatus::Active => match m {
                 Manoeuvre::Reverse(speed) => Goal { velocity: -speed, angle_rad: 0.0, ..goal },

@@ -228,7 +228,7 @@ mod mofis {
     fn setpoints_obey_the_limits() {
         let mut m = mofis();
         // From rest, 0.1 s later: at most max_linear_accel · dt and max_angular_accel · dt.
-        let out = m.step(&Perception::default(), &goal(5.0, 3.0), 0.1).unwrap();
+        let out = m.step(&Perception::default(), &goal(5.0, 0.4), 0.1).unwrap();
         assert!((out.setpoint.v - 0.05).abs() < 1e-12 && (out.setpoint.omega - 0.3).abs() < 1e-12, "{out:?}");
         for _ in 0..100 {
             let out = m.step(&Perception::default(), &goal(5.0, 3.0), 0.1).unwrap();
@@ -241,6 +241,30 @@ mod mofis {
         let arrived = Goal { status: GoalStatus::Arrived, ..goal(0.3, 0.5) };
         let out = m.step(&Perception::default(), &arrived, SETTLED).unwrap();
         assert_eq!(out.setpoint, BodyVelocity::ZERO);
+    }
+
+    #[test]
+    fn sharp_turns_slow_down_and_a_turn_beyond_the_view_is_made_on_the_spot() {
+        // settled at each goal: what the speed converges to for a goal angle (default
+        // blind_turn_start_rad 0.45, blind_turn_stop_rad 0.9, heading gain 1.5, max turn 1 rad/s)
+        let settle = |angle: f64| {
+            let mut m = mofis();
+            let mut out = None;
+            for _ in 0..50 {
+                out = Some(m.step(&Perception::default(), &goal(0.3, angle), 0.1).unwrap());
+            }
+            out.unwrap().setpoint
+        };
+        let straight = settle(0.0);
+        assert!((straight.v - 0.3).abs() < 1e-9, "{straight:?}");
+        // 0.3 rad: inside the view, full speed
+        assert!((settle(0.3).v - 0.3).abs() < 1e-9);
+        // 0.6 rad: the turn rate (0.9 rad/s) ÷ gain is 0.6 rad off → (0.9 − 0.6)/(0.9 − 0.45) = 2/3
+        let s = settle(-0.6);
+        assert!((s.v - 0.2).abs() < 1e-9 && (s.omega + 0.9).abs() < 1e-9, "{s:?}");
+        // beyond 0.9 rad: on the spot, at the turn-rate limit
+        let s = settle(1.2);
+        assert!(s.v.abs() < 1e-12 && (s.omega - 1.0).abs() < 1e-9, "{s:?}");
     }
 
     #[test]

@@ -62,6 +62,7 @@ async fn closed_loop_reaches_the_goal_without_collisions() {
     assert!(s.reached, "{}", s.to_json_line());
     assert_eq!(s.status, GoalStatus::Arrived);
     assert_eq!(s.collisions, 0, "{}", s.to_json_line());
+    assert_eq!(s.first_contact, None);
     assert!(s.goal_error_m <= 0.5, "{}", s.to_json_line());
     // 3 m of leg: the true path is at least that and not much more.
     assert!(s.path_m > 2.5 && s.path_m < 4.0, "{}", s.to_json_line());
@@ -88,6 +89,7 @@ fn summary_json_starts_with_the_contract_fields() {
         frames: 1246,
         failsafe_stops: 0,
         stall_recoveries: 0,
+        first_contact: None,
         tpo_frames: [1, 2, 3, 4, 5],
         doors_matched: 0,
         landmarks_missed: 0,

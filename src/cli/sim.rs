@@ -206,6 +206,24 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
                 nav.plan().length_m,
                 legs.join("; ")
             );
+            let world = &setup.world;
+            let mut obstacles: Vec<String> = world
+                .boxes
+                .iter()
+                .map(|b| {
+                    let [l, w, h] = b.size;
+                    let (x, y) = (b.center[0], b.center[1]);
+                    let yaw = b.yaw.to_degrees();
+                    format!("{} box {l:.2}x{w:.2}x{h:.2} m at ({x:.2}, {y:.2}) yaw {yaw:.0}°", b.name)
+                })
+                .collect();
+            obstacles.extend(world.cylinders.iter().map(|c| {
+                let (x, y) = (c.center[0], c.center[1]);
+                format!("{} cylinder r {:.2} m at ({x:.2}, {y:.2})", c.name, c.radius)
+            }));
+            if !obstacles.is_empty() {
+                eprintln!("obstacles: {}", obstacles.join("; "));
+            }
         }
         let log = match &log_dir {
             Some(dir) => {

@@ -90,7 +90,7 @@ impl Default for MemoryParams {
             max_evidence: 4.0,
             max_range_m: 4.0,
             robot_radius_m: 0.18,
-            path_margin_m: 0.12,
+            path_margin_m: 0.2,
             side_margin_m: 0.15,
             behind_m: 0.0,
             min_travel_m: 0.006,
@@ -249,6 +249,26 @@ impl ObstacleMemory {
         for key in &self.touched {
             let e = self.cells.entry(*key).or_insert(0.0);
             *e = (*e + 1.0).min(self.params.max_evidence);
+        }
+    }
+
+    /// Records a contact the camera could not see (the robot stalled while driving forward):
+    /// the cells on an arc of `±half_arc_rad` just in front of the robot's footprint become
+    /// solid, so that the path ahead reads blocked and the robot steers around what it touched.
+    /// They fade like any cell out of view.
+    pub fn mark_contact(&mut self, half_arc_rad: f64) {
+        let p = self.params;
+        let r = p.robot_radius_m + 0.5 * p.cell_m;
+        // one point per half cell along the arc
+        let n = ((half_arc_rad.abs() * r) / (0.5 * p.cell_m)).ceil() as i32;
+        let (s, c) = self.pose.yaw.sin_cos();
+        for k in -n..=n {
+            let b = if n == 0 { 0.0 } else { half_arc_rad.abs() * k as f64 / n as f64 };
+            let (f, l) = (r * b.cos(), r * b.sin());
+            let x = self.pose.x + c * f - s * l;
+            let y = self.pose.y + s * f + c * l;
+            let key = ((x / p.cell_m).floor() as i32, (y / p.cell_m).floor() as i32);
+            self.cells.insert(key, p.max_evidence);
         }
     }
 
@@ -421,6 +441,26 @@ mod tests {
     }
 
     #[test]
+    fn a_contact_blocks_the_path_ahead_until_the_robot_turns_away() {
+        let mut m = memory();
+        m.mark_contact(0.5);
+        // the arc sits just beyond the footprint, ±0.5 rad: straight on is blocked at once
+        assert!(m.free_distance(0.0, 1.5) < 0.35, "{}", m.free_distance(0.0, 1.5));
+        let o = m.threat();
+        assert!(o.present && o.distance_m.unwrap() < 0.15, "{o:?}");
+        // the stall recovery: back off 0.15 m, then turn on the spot; 46° is not enough to
+        // drive straight on, 90° is
+        step(&mut m, BodyVelocity { v: -0.15, omega: 0.0 }, 1.0, &[]);
+        step(&mut m, BodyVelocity { v: 0.0, omega: 0.8 }, 1.0, &[]);
+        assert!(m.free_distance(0.0, 1.5) < 0.5, "{}", m.free_distance(0.0, 1.5));
+        assert!(m.free_distance(0.8, 1.5) >= 1.5, "{}", m.free_distance(0.8, 1.5));
+        step(&mut m, BodyVelocity { v: 0.0, omega: std::f64::consts::FRAC_PI_2 - 0.8 }, 1.0, &[]);
+        assert!(m.free_distance(0.0, 1.5) >= 1.5, "{}", m.free_distance(0.0, 1.5));
+        // and it is remembered on the right, where it was
+        assert!(!m.occupied().is_empty() && m.occupied().iter().all(|[_, l]| *l < 0.0), "{:?}", m.occupied());
+    }
+
+    #[test]
     fn nothing_is_taken_in_while_creeping_or_turning_fast() {
         let mut m = ObstacleMemory::new(MemoryParams::default(), 0.47);
         let creep = BodyVelocity { v: 0.05, omega: 0.0 }; // 5 mm in 0.1 s < 6 mm
@@ -437,9 +477,10 @@ mod tests {
 
     #[test]
     fn in_path_wins_over_nearer_beside_and_walls_aside_are_ignored() {
-        // a corridor wall 1 m to the left, a box 0.4 m right of the heading at 0.8 m, and a box
-        // in the path at 1.5 m
-        let frame = [pt(0.5, 1.0), pt(1.0, 1.0), pt(0.8, -0.4), pt(1.5, 0.1)];
+        // a corridor wall 1 m to the left, a box 0.45 m right of the heading at 0.8 m (outside
+        // the path's 0.18 + 0.2 m, inside its side band of 0.18 + 0.3 m), and a box in the path
+        // at 1.5 m
+        let frame = [pt(0.5, 1.0), pt(1.0, 1.0), pt(0.8, -0.45), pt(1.5, 0.1)];
         let run = |points: &[SurfacePoint]| {
             let mut m = memory();
             for _ in 0..3 {
@@ -449,7 +490,7 @@ mod tests {
         };
         let o = run(&frame);
         assert!((o.bearing_rad.unwrap() - 0.15f64.atan2(1.55)).abs() < 1e-9, "the in-path box: {o:?}");
-        // without the in-path box: the one beside the path (0.4 m < 0.18 + 0.3), to the right
+        // without the in-path box: the one beside the path, to the right
         let o = run(&frame[..3]);
         assert!(o.bearing_rad.unwrap() < 0.0 && o.distance_m.unwrap() < 0.8, "{o:?}");
         // the wall alone is no threat

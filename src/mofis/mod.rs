@@ -44,6 +44,13 @@ pub struct MofisParams {
     pub unknown_obstacle_distance_m: f64,
     /// An obstacle within this bearing of dead ahead is passed on the goal's side, rad.
     pub dead_ahead_rad: f64,
+    /// Look before driving: the forward speed is full while the robot steers at most this far
+    /// off its heading (the steered goal angle, or the fused turn rate ÷ `heading_gain`), rad —
+    /// about half the camera's field of view, the part of the path the camera has just seen ...
+    pub blind_turn_start_rad: f64,
+    /// ... and falls linearly to nothing at this angle: a sharper turn is made on the spot (a
+    /// round robot cannot hit anything turning on the spot), rad.
+    pub blind_turn_stop_rad: f64,
     /// `[mofis.memory]`: the obstacle memory that turns OFFIS's surface points into the
     /// obstacle avoided ([`memory`]).
     pub memory: memory::MemoryParams,
@@ -60,6 +67,8 @@ impl Default for MofisParams {
             sensing_range_m: 5.0,
             unknown_obstacle_distance_m: 1.5,
             dead_ahead_rad: 0.05,
+            blind_turn_start_rad: 0.45,
+            blind_turn_stop_rad: 0.9,
             memory: memory::MemoryParams::default(),
             stall: stall::StallParams::default(),
         }
@@ -83,6 +92,12 @@ impl MofisParams {
         }
         if !(self.dead_ahead_rad.is_finite() && (0.0..0.5).contains(&self.dead_ahead_rad)) {
             return bad("dead_ahead_rad", "must be in [0, 0.5) rad");
+        }
+        if !(self.blind_turn_start_rad.is_finite() && self.blind_turn_start_rad >= 0.0) {
+            return bad("blind_turn_start_rad", "must be an angle ≥ 0 in rad");
+        }
+        if !(self.blind_turn_stop_rad.is_finite() && self.blind_turn_stop_rad > self.blind_turn_start_rad) {
+            return bad("blind_turn_stop_rad", "must be an angle in rad greater than blind_turn_start_rad");
         }
         if let Err((field, problem)) = self.memory.check() {
             return bad(&format!("memory.{field}"), problem);
@@ -257,6 +272,15 @@ impl Mofis {
         [dist, bearing, front]
     }
 
+    /// The fraction of the forward speed allowed while steering `off` rad off the heading
+    /// (`blind_turn_start_rad` → 1, `blind_turn_stop_rad` and beyond → 0). The camera sees
+    /// ±27° (C310); an arc that bends further sweeps the robot's side through floor it has not
+    /// looked at, which is where the simulated missions clipped boxes and walls.
+    pub fn look_factor(&self, off: f64) -> f64 {
+        let (a, b) = (self.params.blind_turn_start_rad, self.params.blind_turn_stop_rad);
+        ((b - off) / (b - a)).clamp(0.0, 1.0)
+    }
+
     /// One step: fuse collision avoidance for `perception` with PAFSIS's `goal`, and limit the
     /// result for a step `dt` seconds after the previous one. A goal that is not active (arrived,
     /// failed) brings the robot to a stop within the deceleration limits.
@@ -309,12 +333,17 @@ impl Mofis {
         let fused = if goal.status == GoalStatus::Active {
             let max_turn = self.limiter.limits().max_turn_rate;
             let goal_omega = (self.params.heading_gain * goal.angle_rad).clamp(-max_turn, max_turn);
-            BodyVelocity {
-                // backing off (stall recovery, the way it came): the camera sees nothing behind,
-                // so avoidance has nothing to say about it
-                v: if goal.velocity < 0.0 { goal.velocity } else { goal.velocity * avoidance.speed },
-                omega: (1.0 - weight) * goal_omega + weight * avoidance.turn * max_turn,
-            }
+            let omega = (1.0 - weight) * goal_omega + weight * avoidance.turn * max_turn;
+            // backing off (stall recovery, the way it came): the camera sees nothing behind, so
+            // avoidance has nothing to say about it
+            let v = match goal.velocity < 0.0 {
+                true => goal.velocity,
+                false => {
+                    let off = goal.angle_rad.abs().max(omega.abs() / self.params.heading_gain);
+                    goal.velocity * avoidance.speed * self.look_factor(off)
+                }
+            };
+            BodyVelocity { v, omega }
         } else {
             BodyVelocity::ZERO
         };

@@ -42,6 +42,9 @@ pub struct StallParams {
     pub turn_rad: f64,
     /// Give a phase (backing off, turning) up after this long, s.
     pub phase_timeout_s: f64,
+    /// A stall within this long after the last recovery ended turns to the same side again
+    /// (instead of back toward what was just escaped), s.
+    pub repeat_window_s: f64,
 }
 
 impl Default for StallParams {
@@ -55,6 +58,7 @@ impl Default for StallParams {
             reverse_speed_mps: 0.1,
             turn_rad: 0.8,
             phase_timeout_s: 4.0,
+            repeat_window_s: 5.0,
         }
     }
 }
@@ -85,6 +89,9 @@ impl StallParams {
         }
         if !(self.phase_timeout_s.is_finite() && self.phase_timeout_s > 0.0) {
             return bad("phase_timeout_s", "must be a positive time in s");
+        }
+        if !(self.repeat_window_s.is_finite() && self.repeat_window_s >= 0.0) {
+            return bad("repeat_window_s", "must be a time >= 0 in s");
         }
         Ok(())
     }
@@ -117,12 +124,14 @@ pub struct StallRecovery {
     can_reverse: bool,
     phase: Phase,
     recoveries: u32,
+    /// The side of the last recovery (+1 left, −1 right) and the time since it ended, s.
+    last: Option<(f64, f64)>,
 }
 
 impl StallRecovery {
     /// `can_reverse`: the control limits allow driving backwards (else no backing off).
     pub fn new(params: StallParams, can_reverse: bool) -> Self {
-        Self { params, can_reverse, phase: Phase::Watching { stalled_s: 0.0 }, recoveries: 0 }
+        Self { params, can_reverse, phase: Phase::Watching { stalled_s: 0.0 }, recoveries: 0, last: None }
     }
 
     /// How many recoveries were started.
@@ -138,6 +147,7 @@ impl StallRecovery {
     /// Forgets a stall in progress (after a fail-safe stop).
     pub fn reset(&mut self) {
         self.phase = Phase::Watching { stalled_s: 0.0 };
+        self.last = None;
     }
 
     /// One step of `dt` s: `commanded` is the set-point sent before this step, `measured` the
@@ -158,6 +168,9 @@ impl StallRecovery {
         let measured = if measured.v.is_finite() && measured.omega.is_finite() { Some(measured) } else { None };
         match self.phase {
             Phase::Watching { stalled_s } => {
+                if let Some((_, since_s)) = &mut self.last {
+                    *since_s += dt;
+                }
                 let pushing =
                     commanded.v >= p.min_command_mps && measured.is_some_and(|m| m.v.abs() < p.max_ratio * commanded.v);
                 let stalled_s = if pushing { stalled_s + dt } else { 0.0 };
@@ -166,7 +179,14 @@ impl StallRecovery {
                 if stalled_s < p.after_s - 1e-9 {
                     return None;
                 }
-                let side = if free_side() < 0.0 { -1.0 } else { 1.0 };
+                // a repeat stall soon after a recovery: the same way again, further from what was
+                // escaped, rather than back toward it
+                let side = match self.last {
+                    Some((side, since_s)) if since_s <= p.repeat_window_s => side,
+                    _ if free_side() < 0.0 => -1.0,
+                    _ => 1.0,
+                };
+                self.last = Some((side, 0.0));
                 self.recoveries += 1;
                 tracing::warn!(
                     recovery = self.recoveries,
@@ -311,6 +331,48 @@ mod tests {
         for _ in 0..100 {
             assert_eq!(off.update(v(0.3, 0.0), v(0.0, 0.0), DT, || 1.0), None);
         }
+    }
+
+    /// Runs a whole recovery (backing off, then turning as asked) and returns its turn's sign.
+    fn recover(s: &mut StallRecovery, free_side: f64) -> f64 {
+        let (_, mut m) = stall(s, free_side);
+        let mut sign = 0.0;
+        loop {
+            let odo = match m {
+                Manoeuvre::Reverse(speed) => v(-speed, 0.0),
+                Manoeuvre::Turn(a) => {
+                    sign = a.signum();
+                    v(0.0, 0.6 * a.signum())
+                }
+            };
+            match s.update(odo, odo, DT, || panic!("asked mid-recovery")) {
+                Some(next) => m = next,
+                None => return sign,
+            }
+        }
+    }
+
+    #[test]
+    fn a_repeat_stall_turns_the_same_way_again() {
+        let p = StallParams::default();
+        let mut s = StallRecovery::new(p, true);
+        assert_eq!(recover(&mut s, 1.0), 1.0);
+        // stuck again 1 s later: the right now looks freer, but turning back right would face
+        // what was just escaped
+        for _ in 0..30 {
+            assert_eq!(s.update(v(0.3, 0.0), v(0.3, 0.0), DT, || panic!()), None);
+        }
+        assert_eq!(recover(&mut s, -1.0), 1.0);
+        // long after: the free side decides again
+        for _ in 0..(p.repeat_window_s / DT) as usize + 5 {
+            assert_eq!(s.update(v(0.3, 0.0), v(0.3, 0.0), DT, || panic!()), None);
+        }
+        assert_eq!(recover(&mut s, -1.0), -1.0);
+        // straight into another stall: still that way; a reset (fail-safe stop) forgets it
+        assert_eq!(recover(&mut s, 1.0), -1.0);
+        s.reset();
+        assert_eq!(recover(&mut s, 1.0), 1.0);
+        assert_eq!(s.recoveries(), 5);
     }
 
     #[test]

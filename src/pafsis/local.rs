@@ -24,7 +24,7 @@ const NEW_DOOR_JUMP_M: f64 = 0.5;
 
 /// Obstacles seen nearer than this pause the cross-track correction
 /// (`PafsisParams::cross_track_hold_m`), m.
-const HOLD_LINE_RANGE_M: f64 = 2.0;
+const HOLD_LINE_RANGE_M: f64 = 1.0;
 
 /// A door the robot expects to pass (or stop at) on a corridor leg.
 #[derive(Clone, Debug, PartialEq, Serialize)]

@@ -49,7 +49,7 @@ pub struct PafsisParams {
     /// an obstacle the robot returns to the corridor's centre line instead of running on along
     /// whatever side it swerved to.
     pub cross_track_odometry: bool,
-    /// After an obstacle is seen within 2 m at distance d, the cross-track correction pauses
+    /// After an obstacle is seen within 1 m at distance d, the cross-track correction pauses
     /// until the robot has driven d plus this far, m: it passes the obstacle on the side it
     /// swerved to and returns to the line behind it (0: never pause).
     pub cross_track_hold_m: f64,

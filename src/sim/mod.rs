@@ -176,6 +176,8 @@ pub struct SimSummary {
     pub failsafe_stops: u64,
     /// Times the robot found itself pushing against something and turned away.
     pub stall_recoveries: u32,
+    /// The first contact, if any: when, where, and with what.
+    pub first_contact: Option<Contact>,
     /// Frames in which OFFIS saw each TPO class, in `TpoShape::ALL` order (wall, corner, door,
     /// corridor, none).
     pub tpo_frames: [u64; 5],
@@ -192,6 +194,17 @@ pub struct SimSummary {
     pub noise: f64,
     /// Whether the simulator's true pose was given to the planner (never, in this version).
     pub pose_hint: bool,
+}
+
+/// Where and when the robot first touched something (true pose, for diagnosis).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Contact {
+    /// Simulated time of the tick that detected it, s.
+    pub t_s: f64,
+    /// True pose at that tick: x, y (m) and heading (degrees).
+    pub pose: [f64; 3],
+    /// The nearest object (`World::clearance`'s label, e.g. `box box1` or `wall …`).
+    pub object: String,
 }
 
 impl SimSummary {
@@ -362,6 +375,7 @@ pub async fn run(
     let mut odometry = BodyVelocity::ZERO;
     let mut tick_odometry: Vec<BodyVelocity> = Vec::new();
     let (mut odom_seen, mut path_m, mut min_clear) = (0u64, 0.0f64, f64::INFINITY);
+    let mut first_contact: Option<Contact> = None;
     let (mut failsafe_stops, mut frames, mut tpo_frames) = (0u64, 0u64, [0u64; 5]);
     let (mut doors_matched, mut landmarks_missed, mut replans) = (0u64, 0u64, 0u64);
     let mut status = GoalStatus::Active;
@@ -418,8 +432,16 @@ pub async fn run(
         let (pose_w, prev_w) = (pose, prev_pose);
         path_m += (pose.x - prev_pose.x).hypot(pose.y - prev_pose.y);
         prev_pose = pose;
-        let clearance = setup.world.clearance(pose.x, pose.y).distance_m - radius;
+        let near = setup.world.clearance(pose.x, pose.y);
+        let clearance = near.distance_m - radius;
         min_clear = min_clear.min(clearance);
+        if first_contact.is_none() && server.with_device(|b| b.drive().collisions()) > 0 {
+            first_contact = Some(Contact {
+                t_s: round3(t_s),
+                pose: [round3(pose.x), round3(pose.y), round3(pose.yaw.to_degrees())],
+                object: near.object,
+            });
+        }
 
         renderer.render_frame(prev_w, pose_w, &effects, k, &mut image);
         let frame = Frame { seq: k, t_ns, image: image.clone() };
@@ -549,6 +571,7 @@ pub async fn run(
         frames,
         failsafe_stops,
         stall_recoveries: pipeline.stall_recoveries(),
+        first_contact,
         tpo_frames,
         doors_matched,
         landmarks_missed,
