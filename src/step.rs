@@ -184,7 +184,7 @@ impl Pipeline {
             None => Navigator::Cruise(cfg.pafsis.cruise_speed),
         };
         let half_fov = ((calib.camera.width as f64 / 2.0) / calib.camera.fx).atan();
-        let memory = ObstacleMemory::new(cfg.mofis.memory, half_fov);
+        let memory = ObstacleMemory::new(cfg.mofis.memory, half_fov, calib.mount.z_m);
         Ok(Self {
             calib,
             frame_calib: None,

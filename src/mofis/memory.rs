@@ -11,7 +11,8 @@
 //! - each step's points ([`crate::offis::points`]) vote once per `cell_m` cell (several blocks in
 //!   one cell count once), adding 1 to the cell's evidence (capped at `max_evidence`);
 //! - evidence decays with a half-life of `half_life_view_s` where the camera *sees through* the
-//!   cell now (a surface was measured farther away on the cell's bearing: the cell is free), and
+//!   cell now (a surface was measured farther away on the cell's bearing, by a ray that passes
+//!   over the cell lower than the top of what was seen in it: the cell is free), and
 //!   `half_life_aside_s` everywhere else (out of view, or in view but not measured: a close
 //!   textureless face, a bearing with no reliable flow; nothing confirms or clears it); cells
 //!   beyond `max_range_m` are forgotten;
@@ -147,11 +148,23 @@ pub struct ObstacleMemory {
     params: MemoryParams,
     /// Half of the camera's horizontal field of view, rad.
     half_fov_rad: f64,
+    /// Height of the camera's optical centre above the floor, m (for the rays over cells).
+    camera_height_m: f64,
     pose: Pose,
-    cells: BTreeMap<(i32, i32), f64>,
-    touched: Vec<(i32, i32)>,
-    /// Farthest range measured this step per bearing sector, m.
-    seen: Vec<f64>,
+    cells: BTreeMap<(i32, i32), Cell>,
+    /// Cells voted for this step, with the height of the highest point in each, m.
+    touched: Vec<((i32, i32), f64)>,
+    /// The points measured this step per bearing sector: (range, height above the floor), m.
+    seen: Vec<Vec<(f64, f64)>>,
+}
+
+/// One grid cell: its evidence, and the top of what was seen in it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Cell {
+    evidence: f64,
+    /// The highest point that voted for the cell, m above the floor: a ray from the camera that
+    /// passes over the cell lower than this would have hit what is there.
+    top_m: f64,
 }
 
 /// Bearing sectors across the field of view for the seen-through test.
@@ -164,11 +177,13 @@ fn sector(bearing: f64, half_fov: f64) -> Option<usize> {
 }
 
 impl ObstacleMemory {
-    /// A memory for a camera whose horizontal field of view is `2 · half_fov_rad`.
-    pub fn new(params: MemoryParams, half_fov_rad: f64) -> Self {
+    /// A memory for a camera whose horizontal field of view is `2 · half_fov_rad`, mounted
+    /// `camera_height_m` above the floor.
+    pub fn new(params: MemoryParams, half_fov_rad: f64, camera_height_m: f64) -> Self {
         Self {
             params,
             half_fov_rad,
+            camera_height_m,
             pose: Pose::default(),
             cells: BTreeMap::new(),
             touched: Vec::new(),
@@ -187,7 +202,7 @@ impl ObstacleMemory {
 
     /// Occupied cells, robot frame (forward, left), m: for logging and tests.
     pub fn occupied(&self) -> Vec<[f64; 2]> {
-        self.cells.iter().filter(|(_, e)| **e >= self.params.occupied).map(|(k, _)| self.to_robot(*k)).collect()
+        self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(|(k, _)| self.to_robot(*k)).collect()
     }
 
     /// Whether a frame pair over `dt` seconds with the mean velocity `span` and a turn rate that
@@ -212,24 +227,29 @@ impl ObstacleMemory {
             let p = self.params;
             let (k_view, k_aside) = (0.5f64.powf(dt / p.half_life_view_s), 0.5f64.powf(dt / p.half_life_aside_s));
             let (half_fov, cell) = (self.half_fov_rad, p.cell_m);
-            // how far the camera saw along each bearing sector this step
-            self.seen.clear();
-            self.seen.resize(SECTORS, 0.0);
+            // what the camera measured along each bearing sector this step
+            self.seen.resize_with(SECTORS, Vec::new);
+            self.seen.iter_mut().for_each(Vec::clear);
             if measurable {
                 for pt in points {
                     if let Some(k) = sector(pt.left.atan2(pt.forward), half_fov) {
-                        self.seen[k] = self.seen[k].max(pt.forward.hypot(pt.left));
+                        self.seen[k].push((pt.forward.hypot(pt.left), pt.up));
                     }
                 }
             }
-            let (pose, seen) = (self.pose, &self.seen);
-            self.cells.retain(|&(i, j), e| {
+            let (pose, seen, h) = (self.pose, &self.seen, self.camera_height_m);
+            self.cells.retain(|&(i, j), c| {
                 let [f, l] = robot_frame(pose, cell, (i, j));
                 let range = f.hypot(l);
-                // seen through: the camera measured a surface beyond the cell on its bearing
-                let through = f > 0.0 && sector(l.atan2(f), half_fov).is_some_and(|k| seen[k] > range + p.cell_m * 2.0);
-                *e *= if through { k_view } else { k_aside };
-                range <= p.max_range_m && *e >= 0.05
+                // seen through: the camera measured a surface beyond the cell on its bearing, by a
+                // ray that passes over the cell lower than the top of what is remembered there (a
+                // ray to the far wall above a low box says nothing about the box)
+                let through = f > 0.0
+                    && sector(l.atan2(f), half_fov).is_some_and(|k| {
+                        seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
+                    });
+                c.evidence *= if through { k_view } else { k_aside };
+                range <= p.max_range_m && c.evidence >= 0.05
             });
         }
         self.touched.clear();
@@ -242,13 +262,15 @@ impl ObstacleMemory {
             let x = self.pose.x + c * pt.forward - s * pt.left;
             let y = self.pose.y + s * pt.forward + c * pt.left;
             let key = ((x / self.params.cell_m).floor() as i32, (y / self.params.cell_m).floor() as i32);
-            self.touched.push(key);
+            self.touched.push((key, pt.up));
         }
-        self.touched.sort_unstable();
-        self.touched.dedup();
-        for key in &self.touched {
-            let e = self.cells.entry(*key).or_insert(0.0);
-            *e = (*e + 1.0).min(self.params.max_evidence);
+        // one vote per cell, with its highest point
+        self.touched.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)));
+        self.touched.dedup_by_key(|t| t.0);
+        for &(key, up) in &self.touched {
+            let c = self.cells.entry(key).or_insert(Cell { evidence: 0.0, top_m: up });
+            c.evidence = (c.evidence + 1.0).min(self.params.max_evidence);
+            c.top_m = c.top_m.max(up);
         }
     }
 
@@ -268,7 +290,8 @@ impl ObstacleMemory {
             let x = self.pose.x + c * f - s * l;
             let y = self.pose.y + s * f + c * l;
             let key = ((x / p.cell_m).floor() as i32, (y / p.cell_m).floor() as i32);
-            self.cells.insert(key, p.max_evidence);
+            // as tall as anything: no ray clears a contact
+            self.cells.insert(key, Cell { evidence: p.max_evidence, top_m: f64::INFINITY });
         }
     }
 
@@ -280,8 +303,8 @@ impl ObstacleMemory {
         let side = p.robot_radius_m + p.side_margin_m;
         let mut in_path: Option<(f64, [f64; 2])> = None;
         let mut beside: Option<(f64, [f64; 2])> = None;
-        for (key, e) in &self.cells {
-            if *e < p.occupied {
+        for (key, c) in &self.cells {
+            if c.evidence < p.occupied {
                 continue;
             }
             let [f, l] = self.to_robot(*key);
@@ -315,8 +338,8 @@ impl ObstacleMemory {
         let half = p.robot_radius_m + p.path_margin_m;
         let (s, c) = heading.sin_cos();
         let mut free = lookahead_m;
-        for (key, e) in &self.cells {
-            if *e < p.occupied {
+        for (key, cell) in &self.cells {
+            if cell.evidence < p.occupied {
                 continue;
             }
             let [f, l] = self.to_robot(*key);
@@ -371,8 +394,8 @@ impl ObstacleMemory {
     /// counts as `reach_m` away. In a corridor this centres the robot, in a doorway too.
     pub fn centring(&self, window_m: f64, reach_m: f64, lookahead_m: f64, max_rad: f64) -> f64 {
         let (mut left, mut right) = (reach_m, reach_m);
-        for (key, e) in &self.cells {
-            if *e < self.params.occupied {
+        for (key, c) in &self.cells {
+            if c.evidence < self.params.occupied {
                 continue;
             }
             let [f, l] = self.to_robot(*key);
@@ -409,14 +432,14 @@ mod tests {
     use super::*;
 
     fn pt(forward: f64, left: f64) -> SurfacePoint {
-        SurfacePoint { forward, left }
+        SurfacePoint { forward, left, up: 0.5 }
     }
 
     /// The default memory, except that standing still counts as measurable (so the geometry
     /// below is exact) and cells up to 0.48 m beside the heading count as beside the path.
     fn memory() -> ObstacleMemory {
         let p = MemoryParams { min_travel_m: 0.0, side_margin_m: 0.3, ..MemoryParams::default() };
-        ObstacleMemory::new(p, 26.7f64.to_radians())
+        ObstacleMemory::new(p, 26.7f64.to_radians(), 0.4)
     }
 
     const STILL: BodyVelocity = BodyVelocity { v: 0.0, omega: 0.0 };
@@ -462,7 +485,7 @@ mod tests {
 
     #[test]
     fn nothing_is_taken_in_while_creeping_or_turning_fast() {
-        let mut m = ObstacleMemory::new(MemoryParams::default(), 0.47);
+        let mut m = ObstacleMemory::new(MemoryParams::default(), 0.47, 0.4);
         let creep = BodyVelocity { v: 0.05, omega: 0.0 }; // 5 mm in 0.1 s < 6 mm
         let spin = BodyVelocity { v: 0.3, omega: 0.5 };
         assert!(!m.measurable(creep, 0.1, 0.0) && !m.measurable(spin, 0.1, 0.0));
@@ -571,5 +594,30 @@ mod tests {
         assert!(near[0][1] > 0.25, "the cell not seen through survives: {near:?}");
         assert!(p.check().is_ok());
         assert_eq!(MemoryParams { occupied: 5.0, ..p }.check(), Err(("max_evidence", "must be ≥ occupied")));
+    }
+
+    #[test]
+    fn a_ray_over_a_low_box_does_not_clear_it() {
+        // the camera is 0.4 m up; a box 1 m ahead, seen up to 0.25 m (`top`), and a wall 3 m
+        // away on the same bearing, seen at `wall_up`; then 1 s in which only the wall is
+        // measured (the box's flow is too weak to locate, say)
+        let remains = |top: f64, wall_up: f64| {
+            let mut m = memory();
+            let b = |up| SurfacePoint { forward: 1.0, left: 0.0, up };
+            for _ in 0..4 {
+                step(&mut m, STILL, 0.1, &[b(0.1), b(top)]);
+            }
+            for _ in 0..10 {
+                step(&mut m, STILL, 0.1, &[SurfacePoint { forward: 3.0, left: 0.15, up: wall_up }]);
+            }
+            m.occupied().iter().any(|c| c[0] < 2.0)
+        };
+        // the ray to the wall at 1.0 m passes over the box at 0.4 + 0.6/3 ≈ 0.6 m: it says
+        // nothing about the box, which stays
+        assert!(remains(0.25, 1.0));
+        // a ray to the wall's foot (0.15 m) passes the box at ≈ 0.32 m: still above a 0.25 m box,
+        // but through a 0.5 m one, which is cleared
+        assert!(remains(0.25, 0.15));
+        assert!(!remains(0.5, 0.15));
     }
 }

@@ -18,6 +18,8 @@ pub const MIN_OFF_AXIS_RAD: f64 = 0.08;
 pub struct SurfacePoint {
     pub forward: f64,
     pub left: f64,
+    /// Height above the floor, m.
+    pub up: f64,
 }
 
 impl Offis {
@@ -53,7 +55,7 @@ impl Offis {
                 && l.radial_px >= p.reliable_radial_px.max(min_radial_px)
                 && l.tangential_px <= max_tangential * l.radial_px
             {
-                out.push(SurfacePoint { forward: l.forward + mount_m[0], left: l.left + mount_m[1] });
+                out.push(SurfacePoint { forward: l.forward + mount_m[0], left: l.left + mount_m[1], up });
             }
         }
     }
