@@ -97,6 +97,9 @@ impl StallParams {
     }
 }
 
+/// A repeat stall backs off at most (1 + this) × `reverse_m`.
+const MAX_REPEAT_SCALE: u32 = 2;
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Phase {
     /// Driving normally; stalled for this long so far, s.
@@ -126,12 +129,14 @@ pub struct StallRecovery {
     recoveries: u32,
     /// The side of the last recovery (+1 left, −1 right) and the time since it ended, s.
     last: Option<(f64, f64)>,
+    /// Recoveries in a row, each within `repeat_window_s` of the one before (0 for a first).
+    repeats: u32,
 }
 
 impl StallRecovery {
     /// `can_reverse`: the control limits allow driving backwards (else no backing off).
     pub fn new(params: StallParams, can_reverse: bool) -> Self {
-        Self { params, can_reverse, phase: Phase::Watching { stalled_s: 0.0 }, recoveries: 0, last: None }
+        Self { params, can_reverse, phase: Phase::Watching { stalled_s: 0.0 }, recoveries: 0, last: None, repeats: 0 }
     }
 
     /// How many recoveries were started.
@@ -148,6 +153,7 @@ impl StallRecovery {
     pub fn reset(&mut self) {
         self.phase = Phase::Watching { stalled_s: 0.0 };
         self.last = None;
+        self.repeats = 0;
     }
 
     /// One step of `dt` s: `commanded` is the set-point sent before this step, `measured` the
@@ -181,11 +187,19 @@ impl StallRecovery {
                 }
                 // a repeat stall soon after a recovery: the same way again, further from what was
                 // escaped, rather than back toward it
+                // and backing off further each time (up to 3 × reverse_m): 0.15 m was not enough to
+                // get clear of a door jamb met 1 m off the doorway's centre
                 let side = match self.last {
-                    Some((side, since_s)) if since_s <= p.repeat_window_s => side,
-                    _ if free_side() < 0.0 => -1.0,
-                    _ => 1.0,
+                    Some((side, since_s)) if since_s <= p.repeat_window_s => {
+                        self.repeats = (self.repeats + 1).min(MAX_REPEAT_SCALE);
+                        side
+                    }
+                    _ => {
+                        self.repeats = 0;
+                        if free_side() < 0.0 { -1.0 } else { 1.0 }
+                    }
                 };
+                let reverse_m = p.reverse_m * (1 + self.repeats) as f64;
                 self.last = Some((side, 0.0));
                 self.recoveries += 1;
                 tracing::warn!(
@@ -198,7 +212,11 @@ impl StallRecovery {
                     if side > 0.0 { "left" } else { "right" }
                 );
                 self.phase = match self.can_reverse && p.reverse_m > 0.0 {
-                    true => Phase::Reversing { left_m: p.reverse_m, side, time_left_s: p.phase_timeout_s },
+                    true => Phase::Reversing {
+                        left_m: reverse_m,
+                        side,
+                        time_left_s: p.phase_timeout_s * (1 + self.repeats) as f64,
+                    },
                     false => Phase::Turning { left_rad: side * p.turn_rad, time_left_s: p.phase_timeout_s },
                 };
                 self.manoeuvre()
@@ -335,11 +353,19 @@ mod tests {
 
     /// Runs a whole recovery (backing off, then turning as asked) and returns its turn's sign.
     fn recover(s: &mut StallRecovery, free_side: f64) -> f64 {
+        recover_and_back_off(s, free_side).0
+    }
+
+    /// ... and how far it backed off, m.
+    fn recover_and_back_off(s: &mut StallRecovery, free_side: f64) -> (f64, f64) {
         let (_, mut m) = stall(s, free_side);
-        let mut sign = 0.0;
+        let (mut sign, mut back) = (0.0, 0.0);
         loop {
             let odo = match m {
-                Manoeuvre::Reverse(speed) => v(-speed, 0.0),
+                Manoeuvre::Reverse(speed) => {
+                    back += speed * DT;
+                    v(-speed, 0.0)
+                }
                 Manoeuvre::Turn(a) => {
                     sign = a.signum();
                     v(0.0, 0.6 * a.signum())
@@ -347,9 +373,27 @@ mod tests {
             };
             match s.update(odo, odo, DT, || panic!("asked mid-recovery")) {
                 Some(next) => m = next,
-                None => return sign,
+                None => return (sign, back),
             }
         }
+    }
+
+    #[test]
+    fn repeat_stalls_back_off_further_up_to_three_times_as_far() {
+        let p = StallParams::default();
+        let mut s = StallRecovery::new(p, true);
+        // each back-off ends within one step (0.1 m/s × 1/30 s) past its distance
+        let step_m = p.reverse_speed_mps * DT + 1e-9;
+        let backs: Vec<f64> = (0..4).map(|_| recover_and_back_off(&mut s, 1.0).1).collect();
+        for (b, k) in backs.iter().zip([1.0, 2.0, 3.0, 3.0]) {
+            assert!(*b >= k * p.reverse_m - 1e-9 && *b <= k * p.reverse_m + step_m, "{backs:?}");
+        }
+        // long after the last one: back to the first distance
+        for _ in 0..(p.repeat_window_s / DT) as usize + 5 {
+            assert_eq!(s.update(v(0.3, 0.0), v(0.3, 0.0), DT, || panic!()), None);
+        }
+        let b = recover_and_back_off(&mut s, 1.0).1;
+        assert!(b >= p.reverse_m - 1e-9 && b <= p.reverse_m + step_m, "{b}");
     }
 
     #[test]
