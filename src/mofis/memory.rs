@@ -253,15 +253,12 @@ impl ObstacleMemory {
             });
         }
         self.touched.clear();
-        let (s, c) = self.pose.yaw.sin_cos();
         for pt in points.iter().filter(|_| measurable) {
             let range = pt.forward.hypot(pt.left);
             if !(range >= self.params.min_range_m && range <= self.params.max_range_m) {
                 continue;
             }
-            let x = self.pose.x + c * pt.forward - s * pt.left;
-            let y = self.pose.y + s * pt.forward + c * pt.left;
-            let key = ((x / self.params.cell_m).floor() as i32, (y / self.params.cell_m).floor() as i32);
+            let key = self.cell_at(pt.forward, pt.left);
             self.touched.push((key, pt.up));
         }
         // one vote per cell, with its highest point
@@ -283,13 +280,9 @@ impl ObstacleMemory {
         let r = p.robot_radius_m + 0.5 * p.cell_m;
         // one point per half cell along the arc
         let n = ((half_arc_rad.abs() * r) / (0.5 * p.cell_m)).ceil() as i32;
-        let (s, c) = self.pose.yaw.sin_cos();
         for k in -n..=n {
             let b = if n == 0 { 0.0 } else { half_arc_rad.abs() * k as f64 / n as f64 };
-            let (f, l) = (r * b.cos(), r * b.sin());
-            let x = self.pose.x + c * f - s * l;
-            let y = self.pose.y + s * f + c * l;
-            let key = ((x / p.cell_m).floor() as i32, (y / p.cell_m).floor() as i32);
+            let key = self.cell_at(r * b.cos(), r * b.sin());
             // as tall as anything: no ray clears a contact
             self.cells.insert(key, Cell { evidence: p.max_evidence, top_m: f64::INFINITY });
         }
@@ -413,6 +406,14 @@ impl ObstacleMemory {
             return 0.0;
         }
         (0.5 * (left - right)).atan2(lookahead_m).clamp(-max_rad, max_rad)
+    }
+
+    /// The cell under a point `forward`, `left` of the robot, m.
+    fn cell_at(&self, forward: f64, left: f64) -> (i32, i32) {
+        let (s, c) = self.pose.yaw.sin_cos();
+        let x = self.pose.x + c * forward - s * left;
+        let y = self.pose.y + s * forward + c * left;
+        ((x / self.params.cell_m).floor() as i32, (y / self.params.cell_m).floor() as i32)
     }
 
     /// Centre of cell `key`, robot frame.

@@ -276,7 +276,7 @@ impl Mofis {
     /// (`blind_turn_start_rad` → 1, `blind_turn_stop_rad` and beyond → 0). The camera sees
     /// ±27° (C310); an arc that bends further sweeps the robot's side through floor it has not
     /// looked at, which is where the simulated missions clipped boxes and walls.
-    pub fn look_factor(&self, off: f64) -> f64 {
+    fn look_factor(&self, off: f64) -> f64 {
         let (a, b) = (self.params.blind_turn_start_rad, self.params.blind_turn_stop_rad);
         ((b - off) / (b - a)).clamp(0.0, 1.0)
     }

@@ -185,10 +185,10 @@ impl StallRecovery {
                 if stalled_s < p.after_s - 1e-9 {
                     return None;
                 }
-                // a repeat stall soon after a recovery: the same way again, further from what was
-                // escaped, rather than back toward it
-                // and backing off further each time (up to 3 × reverse_m): 0.15 m was not enough to
-                // get clear of a door jamb met 1 m off the doorway's centre
+                // a repeat stall soon after a recovery turns the same way again (further from what
+                // was escaped, not back toward it) and backs off further each time, up to
+                // (1 + MAX_REPEAT_SCALE) × reverse_m: 0.15 m did not clear a door jamb met 1 m off
+                // the doorway's centre
                 let side = match self.last {
                     Some((side, since_s)) if since_s <= p.repeat_window_s => {
                         self.repeats = (self.repeats + 1).min(MAX_REPEAT_SCALE);
@@ -199,7 +199,7 @@ impl StallRecovery {
                         if free_side() < 0.0 { -1.0 } else { 1.0 }
                     }
                 };
-                let reverse_m = p.reverse_m * (1 + self.repeats) as f64;
+                let scale = (1 + self.repeats) as f64;
                 self.last = Some((side, 0.0));
                 self.recoveries += 1;
                 tracing::warn!(
@@ -212,11 +212,9 @@ impl StallRecovery {
                     if side > 0.0 { "left" } else { "right" }
                 );
                 self.phase = match self.can_reverse && p.reverse_m > 0.0 {
-                    true => Phase::Reversing {
-                        left_m: reverse_m,
-                        side,
-                        time_left_s: p.phase_timeout_s * (1 + self.repeats) as f64,
-                    },
+                    true => {
+                        Phase::Reversing { left_m: scale * p.reverse_m, side, time_left_s: scale * p.phase_timeout_s }
+                    }
                     false => Phase::Turning { left_rad: side * p.turn_rad, time_left_s: p.phase_timeout_s },
                 };
                 self.manoeuvre()
