@@ -246,7 +246,7 @@ mod mofis {
     #[test]
     fn sharp_turns_slow_down_and_a_turn_beyond_the_view_is_made_on_the_spot() {
         // settled at each goal: what the speed converges to for a goal angle (default
-        // blind_turn_start_rad 0.45, blind_turn_stop_rad 0.9, heading gain 1.5, max turn 1 rad/s)
+        // blind_turn_start_rad 0.2, blind_turn_stop_rad 0.6, heading gain 1.5, max turn 1 rad/s)
         let settle = |angle: f64| {
             let mut m = mofis();
             let mut out = None;
@@ -257,13 +257,13 @@ mod mofis {
         };
         let straight = settle(0.0);
         assert!((straight.v - 0.3).abs() < 1e-9, "{straight:?}");
-        // 0.3 rad: inside the view, full speed
-        assert!((settle(0.3).v - 0.3).abs() < 1e-9);
-        // 0.6 rad: the turn rate (0.9 rad/s) ÷ gain is 0.6 rad off → (0.9 − 0.6)/(0.9 − 0.45) = 2/3
-        let s = settle(-0.6);
-        assert!((s.v - 0.2).abs() < 1e-9 && (s.omega + 0.9).abs() < 1e-9, "{s:?}");
-        // beyond 0.9 rad: on the spot, at the turn-rate limit
-        let s = settle(1.2);
+        // 0.15 rad: a 0.225 rad/s turn, which the obstacle memory still measures in: full speed
+        assert!((settle(0.15).v - 0.3).abs() < 1e-9);
+        // 0.3 rad: 0.45 rad/s ÷ gain is 0.3 rad off → (0.6 − 0.3)/(0.6 − 0.2) = 3/4 of the speed
+        let s = settle(-0.3);
+        assert!((s.v - 0.225).abs() < 1e-9 && (s.omega + 0.45).abs() < 1e-9, "{s:?}");
+        // beyond 0.6 rad: on the spot, at the turn-rate limit
+        let s = settle(0.8);
         assert!(s.v.abs() < 1e-12 && (s.omega - 1.0).abs() < 1e-9, "{s:?}");
     }
 

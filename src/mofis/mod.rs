@@ -45,8 +45,9 @@ pub struct MofisParams {
     /// An obstacle within this bearing of dead ahead is passed on the goal's side, rad.
     pub dead_ahead_rad: f64,
     /// Look before driving: the forward speed is full while the robot steers at most this far
-    /// off its heading (the steered goal angle, or the fused turn rate ÷ `heading_gain`), rad —
-    /// about half the camera's field of view, the part of the path the camera has just seen ...
+    /// off its heading (the steered goal angle, or the fused turn rate ÷ `heading_gain`), rad.
+    /// 0.2 rad × `heading_gain` 1.5 = 0.3 rad/s, `memory.max_turn_rate`: faster turns blind the
+    /// obstacle memory (no depth is taken in), so full speed only while the camera still measures ...
     pub blind_turn_start_rad: f64,
     /// ... and falls linearly to nothing at this angle: a sharper turn is made on the spot (a
     /// round robot cannot hit anything turning on the spot), rad.
@@ -67,8 +68,8 @@ impl Default for MofisParams {
             sensing_range_m: 5.0,
             unknown_obstacle_distance_m: 1.5,
             dead_ahead_rad: 0.05,
-            blind_turn_start_rad: 0.45,
-            blind_turn_stop_rad: 0.9,
+            blind_turn_start_rad: 0.2,
+            blind_turn_stop_rad: 0.6,
             memory: memory::MemoryParams::default(),
             stall: stall::StallParams::default(),
         }
@@ -274,8 +275,9 @@ impl Mofis {
 
     /// The fraction of the forward speed allowed while steering `off` rad off the heading
     /// (`blind_turn_start_rad` → 1, `blind_turn_stop_rad` and beyond → 0). The camera sees
-    /// ±27° (C310); an arc that bends further sweeps the robot's side through floor it has not
-    /// looked at, which is where the simulated missions clipped boxes and walls.
+    /// ±27° (C310) and the memory takes nothing in while turning faster than its
+    /// `max_turn_rate`; an arc driven fast through such a turn sweeps the robot through floor it
+    /// has not measured, which is where the simulated missions clipped boxes and walls.
     fn look_factor(&self, off: f64) -> f64 {
         let (a, b) = (self.params.blind_turn_start_rad, self.params.blind_turn_stop_rad);
         ((b - off) / (b - a)).clamp(0.0, 1.0)
