@@ -678,7 +678,8 @@ pub fn clearly_nearer(r: f64, reference: f64) -> bool {
 /// The classifier inputs for one frame pair.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Features {
-    /// Fraction of the bins whose envelope point is a plane inlier within [`RANGE_M`].
+    /// Fraction of the bins whose envelope point is an inlier of a plane that comes within
+    /// [`RANGE_M`] (its second-nearest inlier does; all its inliers count).
     pub near_frac: f64,
     /// Number of planes (0, 1, 2).
     pub planes: f64,
@@ -736,7 +737,8 @@ impl Features {
             r.sort_by(f64::total_cmp);
             r.get(1).is_some_and(|&x| x <= RANGE_M)
         };
-        let near = (0..bins.len()).filter(|&b| model.planes().any(|l| l.inliers >> b & 1 == 1 && near_plane(l))).count();
+        let near =
+            (0..bins.len()).filter(|&b| model.planes().any(|l| l.inliers >> b & 1 == 1 && near_plane(l))).count();
         let planes: Vec<&Line> = model.planes().collect();
         let pair_angle_deg = match planes[..] {
             [a, b] => angle_between(a.dir, b.dir),
@@ -1003,6 +1005,36 @@ mod tests {
         // one wall alone has no partner
         let bins: Vec<Bin> = bins.into_iter().take(10).collect();
         assert_eq!(Features::compute(&bins, &TpoModel::fit(&bins)).planes, 1.0);
+    }
+
+    #[test]
+    fn a_corner_whose_edge_a_person_hides_is_split_where_its_walls_cross_behind_the_person() {
+        // a 140° corner 3 m ahead (each wall 20° off frontal), a person 1.4 m ahead over bins 6–9
+        let bearing = |k: usize| (25.0 - 50.0 * k as f64 / 15.0f64).to_radians();
+        let t = 20f64.to_radians().tan();
+        let pts: Vec<[f64; 2]> = (0..16)
+            .map(|k| {
+                let b = bearing(k);
+                // wall x = 3 - t·|y| along the ray at bearing b
+                let r = if (6..=9).contains(&k) { 1.4 } else { 3.0 / (b.cos() + t * b.sin().abs()) };
+                [r * b.cos(), r * b.sin()]
+            })
+            .collect();
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        assert_eq!(m.occluded, 0b11_1100_0000, "{m:?}");
+        let [Some(a), Some(b)] = m.lines else { panic!("{m:?}") };
+        assert!(behind_occluder(&bins, m.occluded, 5, 10, &a, &b), "{m:?}");
+        let v = intersect(&a, &b).unwrap();
+        assert!((v[0] - 3.0).abs() < 0.05 && v[1].abs() < 0.05, "{v:?}");
+        // the wall's two sides of a person are one line: they do not cross behind it
+        let wall = bins_on(
+            &(0..16)
+                .map(|k| if (6..=9).contains(&k) { [1.4, 0.0] } else { [3.0, 0.2 * (7.5 - k as f64)] })
+                .collect::<Vec<_>>(),
+        );
+        let m = TpoModel::fit(&wall);
+        assert!(m.lines[0].is_some() && m.lines[1].is_none(), "{m:?}");
     }
 
     #[test]
