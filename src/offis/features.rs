@@ -254,15 +254,20 @@ fn cost(bins: &[Bin], free: u64, lines: &[Option<Line>; 2]) -> f64 {
 /// points better than `current` by at least [`SPLIT_MARGIN`]. The sequential fit can miss a
 /// shallow corner, whose two walls stay within the tolerance of one line through its middle.
 fn split(bins: &[Bin], free: u64, occluded: u64, current: &[Option<Line>; 2]) -> Option<[Line; 2]> {
-    if !bent(bins, free) {
+    let is_bent = bent(bins, free);
+    if !is_bent && occluded == 0 {
         return None;
     }
     let idx: Vec<usize> = (0..bins.len()).filter(|&b| free >> b & 1 == 1).collect();
-    let mut best = (cost(bins, free, current) - SPLIT_MARGIN, None);
+    let base = cost(bins, free, current);
+    let mut best = (base - SPLIT_MARGIN, None);
     for k in MIN_PLANE_POINTS..=idx.len().saturating_sub(MIN_PLANE_POINTS) {
         let left: u64 = idx[..k].iter().fold(0, |m, &b| m | 1 << b);
         // an occluder between the two sides hides the corner's edge and part of each wall
         let hidden = (idx[k - 1] + 1..idx[k]).any(|x| occluded >> x & 1 == 1);
+        if !is_bent && !hidden {
+            continue;
+        }
         let side = if hidden { CORNER_SIDE_HIDDEN_M } else { CORNER_SIDE_M };
         let (Some(a), Some(b)) = (best_line(bins, left, occluded, side), best_line(bins, free & !left, occluded, side))
         else {
@@ -274,12 +279,49 @@ fn split(bins: &[Bin], free: u64, occluded: u64, current: &[Option<Line>; 2]) ->
         if angle_between(a.dir, b.dir) < SPLIT_MIN_DEG {
             continue;
         }
+        // points that do not bend may still be a corner whose edge an occluder hides: then the
+        // two walls must cross behind it
+        let behind = hidden && behind_occluder(bins, occluded, idx[k - 1], idx[k], &a, &b);
+        if !is_bent && !behind {
+            continue;
+        }
         let c = cost(bins, free, &[Some(a), Some(b)]);
-        if c < best.0 {
+        // a crossing behind the occluder is evidence of its own: a smaller margin will do
+        let limit = match best.1 {
+            None if behind => base - SPLIT_MARGIN_BEHIND,
+            _ => best.0,
+        };
+        if c < limit {
             best = (c, Some([a, b]));
         }
     }
     best.1
+}
+
+/// Whether the lines `a` and `b` cross behind the occluder between bins `i` and `j` (the
+/// occluded bins between them): ahead of the camera, within the occluder's bearings (widened by
+/// half a bin either side) and farther than its nearest point. A corner whose edge a person or
+/// a box hides.
+fn behind_occluder(bins: &[Bin], occluded: u64, i: usize, j: usize, a: &Line, b: &Line) -> bool {
+    let Some(v) = intersect(a, b) else { return false };
+    if v[0] <= 0.0 {
+        return false;
+    }
+    let half = if bins.len() > 1 {
+        0.5 * (bins[0].bearing - bins[bins.len() - 1].bearing).abs() / (bins.len() - 1) as f64
+    } else {
+        0.0
+    };
+    let (mut lo, mut hi, mut near) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY);
+    for x in (i + 1..j).filter(|&x| x < 64 && occluded >> x & 1 == 1) {
+        lo = lo.min(bins[x].bearing);
+        hi = hi.max(bins[x].bearing);
+        if let Some(p) = bins[x].point {
+            near = near.min(range(p));
+        }
+    }
+    let bv = v[1].atan2(v[0]);
+    lo - half <= bv && bv <= hi + half && range(v) > near
 }
 
 /// Whether the points of `free` bend: at least half of them lie significantly off one line
@@ -325,6 +367,8 @@ pub const BEND_MAX_Z: f64 = -1.2;
 /// See [`split`]. Each wall of a corner must span at least [`CORNER_SIDE_M`] (a near corner
 /// shows little of each wall) and the two hold at least 8 points together.
 pub const SPLIT_MARGIN: f64 = 1.0;
+/// ... or this much when the two walls cross behind an occluder between them.
+pub const SPLIT_MARGIN_BEHIND: f64 = 0.5;
 pub const CORNER_SIDE_M: f64 = 0.5;
 /// ... or this much when an occluder stands between the two walls.
 pub const CORNER_SIDE_HIDDEN_M: f64 = 0.15;
@@ -634,7 +678,8 @@ pub fn clearly_nearer(r: f64, reference: f64) -> bool {
 /// The classifier inputs for one frame pair.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Features {
-    /// Fraction of the bins whose envelope point is a plane inlier within [`RANGE_M`].
+    /// Fraction of the bins whose envelope point is an inlier of a plane that comes within
+    /// [`RANGE_M`] (its second-nearest inlier does; all its inliers count).
     pub near_frac: f64,
     /// Number of planes (0, 1, 2).
     pub planes: f64,
@@ -683,9 +728,17 @@ impl Features {
     /// Computes the features from the profile bins (left image column first) and their model.
     pub fn compute(bins: &[Bin], model: &TpoModel) -> Self {
         let nb = bins.len().max(1) as f64;
-        let near = (0..bins.len())
-            .filter(|&b| model.is_inlier(b) && bins[b].point.is_some_and(|p| range(p) <= RANGE_M))
-            .count();
+        // a plane is near when it comes within RANGE_M (its second-nearest inlier, so that one
+        // noisy point does not decide); all its inliers count, also those beyond (a corridor's
+        // wall seen at a grazing angle is mostly far)
+        let near_plane = |l: &Line| {
+            let mut r: Vec<f64> =
+                (0..bins.len()).filter(|&b| l.inliers >> b & 1 == 1).filter_map(|b| bins[b].point.map(range)).collect();
+            r.sort_by(f64::total_cmp);
+            r.get(1).is_some_and(|&x| x <= RANGE_M)
+        };
+        let near =
+            (0..bins.len()).filter(|&b| model.planes().any(|l| l.inliers >> b & 1 == 1 && near_plane(l))).count();
         let planes: Vec<&Line> = model.planes().collect();
         let pair_angle_deg = match planes[..] {
             [a, b] => angle_between(a.dir, b.dir),
@@ -952,6 +1005,36 @@ mod tests {
         // one wall alone has no partner
         let bins: Vec<Bin> = bins.into_iter().take(10).collect();
         assert_eq!(Features::compute(&bins, &TpoModel::fit(&bins)).planes, 1.0);
+    }
+
+    #[test]
+    fn a_corner_whose_edge_a_person_hides_is_split_where_its_walls_cross_behind_the_person() {
+        // a 140° corner 3 m ahead (each wall 20° off frontal), a person 1.4 m ahead over bins 6–9
+        let bearing = |k: usize| (25.0 - 50.0 * k as f64 / 15.0f64).to_radians();
+        let t = 20f64.to_radians().tan();
+        let pts: Vec<[f64; 2]> = (0..16)
+            .map(|k| {
+                let b = bearing(k);
+                // wall x = 3 - t·|y| along the ray at bearing b
+                let r = if (6..=9).contains(&k) { 1.4 } else { 3.0 / (b.cos() + t * b.sin().abs()) };
+                [r * b.cos(), r * b.sin()]
+            })
+            .collect();
+        let bins = bins_on(&pts);
+        let m = TpoModel::fit(&bins);
+        assert_eq!(m.occluded, 0b11_1100_0000, "{m:?}");
+        let [Some(a), Some(b)] = m.lines else { panic!("{m:?}") };
+        assert!(behind_occluder(&bins, m.occluded, 5, 10, &a, &b), "{m:?}");
+        let v = intersect(&a, &b).unwrap();
+        assert!((v[0] - 3.0).abs() < 0.05 && v[1].abs() < 0.05, "{v:?}");
+        // the wall's two sides of a person are one line: they do not cross behind it
+        let wall = bins_on(
+            &(0..16)
+                .map(|k| if (6..=9).contains(&k) { [1.4, 0.0] } else { [3.0, 0.2 * (7.5 - k as f64)] })
+                .collect::<Vec<_>>(),
+        );
+        let m = TpoModel::fit(&wall);
+        assert!(m.lines[0].is_some() && m.lines[1].is_none(), "{m:?}");
     }
 
     #[test]
