@@ -202,11 +202,12 @@ mod mofis {
     #[test]
     fn no_obstacle_follows_the_goal() {
         let mut m = mofis();
-        let out = m.step(&Perception::default(), &goal(0.35, 0.4), SETTLED).unwrap();
+        // (0.15 rad: within the look-before-driving band, so at full speed)
+        let out = m.step(&Perception::default(), &goal(0.35, 0.15), SETTLED).unwrap();
         assert_eq!(out.avoidance.speed, 1.0);
         assert_eq!(out.weight, 0.0);
         assert!((out.setpoint.v - 0.35).abs() < 1e-9, "{:?}", out.setpoint);
-        assert!((out.setpoint.omega - 1.5 * 0.4).abs() < 1e-9, "{:?}", out.setpoint);
+        assert!((out.setpoint.omega - 1.5 * 0.15).abs() < 1e-9, "{:?}", out.setpoint);
         // A far obstacle aside changes nothing either.
         let out = m.step(&obstacle(4.0, 0.5), &goal(0.35, -0.2), SETTLED).unwrap();
         assert!((out.setpoint.omega + 0.3).abs() < 1e-9 && (out.setpoint.v - 0.35).abs() < 1e-9, "{out:?}");
