@@ -16,38 +16,62 @@
 //! envelope points over the file (the bench drives straight, so they do not change). Obstacle
 //! figures need the flow field and are not replayed.
 
+use clap::Parser;
 use flownav::offis::classify::Classifier;
 use flownav::offis::features::{Bin, Features, TpoModel};
 use flownav::perception::TpoShape;
-use serde_json::Value;
+use serde::Deserialize;
+use std::path::PathBuf;
 
-fn shape(name: &str) -> usize {
-    TpoShape::ALL.iter().position(|s| s.name() == name).unwrap_or_else(|| panic!("unknown shape {name}"))
+#[derive(Parser)]
+struct Args {
+    /// Take the rule bases from this folder instead of the built-in ones.
+    #[arg(long)]
+    rules: Option<PathBuf>,
+    /// List every scene that is wrong or whose class differs from the stored one.
+    #[arg(long)]
+    list: bool,
+    /// ... with its features and planes.
+    #[arg(long, requires = "list")]
+    details: bool,
+    /// `bench-offis --json` reports.
+    #[arg(required = true)]
+    files: Vec<PathBuf>,
+}
+
+/// The parts of a `bench-offis --json` report ([`flownav::offis::bench::Report`]) replayed.
+#[derive(Deserialize)]
+struct Report {
+    samples: Vec<Sample>,
+}
+
+#[derive(Deserialize)]
+struct Sample {
+    index: usize,
+    label: String,
+    truth: TpoShape,
+    predicted: TpoShape,
+    profile: Vec<Option<[f64; 2]>>,
+}
+
+fn index(s: TpoShape) -> usize {
+    TpoShape::ALL.iter().position(|&x| x == s).expect("ALL lists every shape")
 }
 
 fn main() -> anyhow::Result<()> {
-    let mut args: Vec<String> = std::env::args().skip(1).collect();
-    let mut rules = None;
-    if let Some(k) = args.iter().position(|a| a == "--rules") {
-        rules = Some(std::path::PathBuf::from(args.remove(k + 1)));
-        args.remove(k);
-    }
-    let list = args.iter().any(|a| a == "--list");
-    let details = args.iter().any(|a| a == "--details");
-    args.retain(|a| a != "--details");
-    args.retain(|a| a != "--list");
-    let mut classifier = Classifier::load(rules.as_deref())?;
+    let args = Args::parse();
+    let mut classifier = Classifier::load(args.rules.as_deref())?;
 
     let (mut total, mut right) = (0, 0);
-    for file in &args {
-        let report: Value = serde_json::from_str(&std::fs::read_to_string(file)?)?;
-        let samples = report["samples"].as_array().expect("samples");
-        let nb = samples[0]["profile"].as_array().expect("profile").len();
+    for file in &args.files {
+        let report: Report = serde_json::from_str(&std::fs::read_to_string(file)?)?;
+        let samples = &report.samples;
+        let nb = samples.first().map_or(0, |s| s.profile.len());
         let mut bearings = vec![Vec::new(); nb];
         for s in samples {
-            for (b, p) in s["profile"].as_array().unwrap().iter().enumerate() {
-                if let Some(p) = p.as_array() {
-                    bearings[b].push(p[1].as_f64().unwrap().atan2(p[0].as_f64().unwrap()));
+            for (b, p) in s.profile.iter().enumerate() {
+                if let Some([x, y]) = p {
+                    bearings[b].push(y.atan2(*x));
                 }
             }
         }
@@ -55,39 +79,30 @@ fn main() -> anyhow::Result<()> {
             .iter_mut()
             .map(|v| {
                 v.sort_by(f64::total_cmp);
-                v[v.len() / 2]
+                v.get(v.len() / 2).copied().unwrap_or(0.0)
             })
             .collect();
         let mut confusion = [[0usize; 5]; 5];
         for s in samples {
-            let bins: Vec<Bin> = s["profile"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .enumerate()
-                .map(|(b, p)| Bin {
-                    point: p.as_array().map(|p| [p[0].as_f64().unwrap(), p[1].as_f64().unwrap()]),
-                    bearing: bearing[b],
-                })
-                .collect();
+            let bins: Vec<Bin> =
+                s.profile.iter().zip(&bearing).map(|(&point, &bearing)| Bin { point, bearing }).collect();
             let model = TpoModel::fit(&bins);
             let f = Features::compute(&bins, &model);
             let d = classifier.classify(&f)?;
-            let truth = shape(s["truth"].as_str().unwrap());
-            let got = shape(d.shape.name());
+            let (truth, got) = (index(s.truth), index(d.shape));
             confusion[truth][got] += 1;
-            let was = s["predicted"].as_str().unwrap();
-            if list && (truth != got || was != d.shape.name()) {
+            if args.list && (truth != got || s.predicted != d.shape) {
                 println!(
-                    "{file} #{:<3} {:<8} -> {:<8} (bench: {:<8}) {:.2} | {}",
-                    s["index"],
-                    TpoShape::ALL[truth].name(),
+                    "{} #{:<3} {:<8} -> {:<8} (bench: {:<8}) {:.2} | {}",
+                    file.display(),
+                    s.index,
+                    s.truth.name(),
                     d.shape.name(),
-                    was,
+                    s.predicted.name(),
                     d.confidence,
-                    s["label"].as_str().unwrap()
+                    s.label
                 );
-                if details {
+                if args.details {
                     println!("    {f:?}");
                     for l in model.planes() {
                         println!(
@@ -106,7 +121,7 @@ fn main() -> anyhow::Result<()> {
         }
         let ok: usize = (0..5).map(|k| confusion[k][k]).sum();
         let n: usize = confusion.iter().flatten().sum();
-        println!("{file}: {:.1}% ({ok} of {n}) {confusion:?}", 100.0 * ok as f64 / n as f64);
+        println!("{}: {:.1}% ({ok} of {n}) {confusion:?}", file.display(), 100.0 * ok as f64 / n.max(1) as f64);
         total += n;
         right += ok;
     }

@@ -737,8 +737,8 @@ impl Features {
             r.sort_by(f64::total_cmp);
             r.get(1).is_some_and(|&x| x <= RANGE_M)
         };
-        let near =
-            (0..bins.len()).filter(|&b| model.planes().any(|l| l.inliers >> b & 1 == 1 && near_plane(l))).count();
+        let near_inliers = model.planes().filter(|l| near_plane(l)).fold(0u64, |m, l| m | l.inliers);
+        let near = (0..bins.len()).filter(|&b| near_inliers >> b & 1 == 1).count();
         let planes: Vec<&Line> = model.planes().collect();
         let pair_angle_deg = match planes[..] {
             [a, b] => angle_between(a.dir, b.dir),
