@@ -312,11 +312,17 @@ impl Pipeline {
             Navigator::Cruise(v) => Goal { velocity: *v, angle_rad: 0.0, status: GoalStatus::Active },
         };
         let m = &calib.mount;
-        let mp = self.memory.params();
+        let mp = *self.memory.params();
         let (min_radial, max_tangential) = (mp.min_radial_px, mp.max_tangential);
         self.offis.surface_points([m.x_m, m.y_m, m.z_m], min_radial, max_tangential, &mut self.points);
         self.memory.update(odometry, frame_dt, &self.points, measured);
-        let avoided = self.memory.threat();
+        // where the plan stops the robot (before a turn, at the goal): nothing beyond is in its way
+        let stop_ahead = match &self.navigator {
+            Navigator::Mission(pafsis) => pafsis.stop_ahead_m(),
+            Navigator::Cruise(_) => None,
+        };
+        let reach = stop_ahead.map_or(f64::INFINITY, |d| d + mp.robot_radius_m + mp.path_margin_m);
+        let avoided = self.memory.threat_within(stop_ahead.unwrap_or(f64::INFINITY));
         // pushing against something unseen: turn away on the spot, to the freer side
         let memory = &self.memory;
         let recoveries_before = self.stall.recoveries();
@@ -347,13 +353,19 @@ impl Pipeline {
             true => {
                 let centred = goal.angle_rad
                     + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                Goal { angle_rad: self.memory.steer(centred, STEER_LOOKAHEAD_M, STEER_MAX_RAD, STEER_STEP_RAD), ..goal }
+                let lookahead = STEER_LOOKAHEAD_M.min(reach);
+                Goal { angle_rad: self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD), ..goal }
             }
             false => goal,
         };
         // the distance ahead: the free path along the heading in the memory (the TPO's wall
         // distance is one frame's guess; the memory has what was seen solid, over frames)
-        let front = self.memory.free_distance(0.0, self.mofis_range) - self.memory.params().robot_radius_m;
+        // distance ahead, and nothing there (the sensing range) when the path is free up to the stop
+        let free = self.memory.free_distance(0.0, self.mofis_range);
+        let front = match free >= reach {
+            true => self.mofis_range,
+            false => free - mp.robot_radius_m,
+        };
         let view = Perception { obstacle: avoided, ..perception.clone() };
         let mofis = self.mofis.step_with_front(&view, Some(front.max(0.0)), &steered, frame_dt)?;
         self.last_setpoint = mofis.setpoint;

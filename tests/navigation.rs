@@ -147,6 +147,80 @@ fn missing_end_wall_relocalises_and_stops() {
     assert!((walk.x - 0.8).abs() < 0.1, "stops 0.8 m before the wall, at x = {:.2}", walk.x);
 }
 
+#[test]
+fn the_plan_says_how_far_ahead_it_stops_the_robot() {
+    let map = office();
+    let mut nav = mission(&map, "R9:D2");
+    let none = Perception::default();
+    // through D9 (2.5 m) and straight on to the centre line (0.5 m), then a turn on the spot
+    assert_eq!(nav.stop_ahead_m(), Some(3.0));
+    let forward = BodyVelocity::new(0.2, 0.0);
+    for _ in 0..10 {
+        nav.step(&none, forward, 0.1);
+    }
+    assert!((nav.stop_ahead_m().unwrap() - 2.8).abs() < 1e-9, "{:?}", nav.stop_ahead_m());
+    while nav.progress().leg < 2 {
+        nav.step(&none, forward, 0.1);
+    }
+    assert_eq!(nav.stop_ahead_m(), None, "turning on the spot: no stop ahead");
+    let left = BodyVelocity::new(0.0, 0.5);
+    while nav.progress().leg < 3 {
+        nav.step(&none, left, 0.02);
+    }
+    // the 12 m corridor leg ends at D2, where the robot turns to face the door
+    let ahead = nav.stop_ahead_m().expect("the corridor leg ends at a door, by odometry");
+    assert!((ahead - 12.0).abs() < 0.05, "{ahead}");
+}
+
+#[test]
+fn doors_seen_obliquely_do_not_relocalise() {
+    let map = office();
+    let mut nav = mission(&map, "R9:D2");
+    let none = Perception::default();
+    let forward = BodyVelocity::new(0.2, 0.0);
+    while nav.progress().leg < 2 {
+        nav.step(&none, forward, 0.1);
+    }
+    while nav.progress().leg < 3 {
+        nav.step(&none, BodyVelocity::new(0.0, 0.5), 0.02);
+    }
+    // 2 m along the corridor leg; D3 is expected 6 m along it
+    for _ in 0..100 {
+        nav.step(&none, forward, 0.1);
+    }
+    nav.take_events();
+    let door = Perception {
+        tpo: Tpo { shape: TpoShape::Door, confidence: 0.9, distance_m: Some(3.7) },
+        ..Perception::default()
+    };
+    let turn = |nav: &mut Pafsis, omega: f64| {
+        for _ in 0..10 {
+            nav.step(&none, BodyVelocity::new(0.0, omega), 0.1);
+        }
+    };
+    // swerving 0.3 rad off the corridor: the 3.7 m is the range to the side wall, not to D3
+    turn(&mut nav, 0.3);
+    for _ in 0..5 {
+        nav.step(&door, BodyVelocity::ZERO, 0.1);
+    }
+    let events = nav.take_events();
+    assert!(!events.iter().any(|e| matches!(e, PafsisEvent::DoorMatched { .. })), "{events:#?}");
+    assert!((nav.progress().along_m - 2.0).abs() < 0.01, "progress untouched: {}", nav.progress().along_m);
+    // back on the corridor's axis the same sighting matches D3 and moves the progress 0.3 m on
+    turn(&mut nav, -0.3);
+    for _ in 0..5 {
+        nav.step(&door, BodyVelocity::ZERO, 0.1);
+    }
+    let events = nav.take_events();
+    let matched = events.iter().find_map(|e| match e {
+        PafsisEvent::DoorMatched { door, correction_m, .. } => Some((door.clone(), *correction_m)),
+        _ => None,
+    });
+    let (name, correction) = matched.expect("D3 matched");
+    assert_eq!(name.as_deref(), Some("D3"));
+    assert!((correction - 0.3).abs() < 0.01, "{correction}");
+}
+
 mod mofis {
     use super::*;
     use flownav::control::ControlLimits;

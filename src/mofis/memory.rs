@@ -291,6 +291,13 @@ impl ObstacleMemory {
     /// The most threatening occupied cell as an obstacle for MOFIS (module doc); `present:
     /// false` when none is in or beside the path.
     pub fn threat(&self) -> Obstacle {
+        self.threat_within(f64::INFINITY)
+    }
+
+    /// [`threat`](Self::threat) for a robot that will stop before its origin has driven
+    /// `reach_m` further: cells in the path beyond `reach_m + robot_radius_m + path_margin_m`
+    /// ahead are not in its way.
+    pub fn threat_within(&self, reach_m: f64) -> Obstacle {
         let p = &self.params;
         let path = p.robot_radius_m + p.path_margin_m;
         let side = p.robot_radius_m + p.side_margin_m;
@@ -306,6 +313,9 @@ impl ObstacleMemory {
             }
             let range = f.hypot(l);
             if l.abs() <= path && f > 0.0 {
+                if f > reach_m + path {
+                    continue;
+                }
                 if in_path.is_none_or(|(d, _)| f < d) {
                     in_path = Some((f, [f, l]));
                 }
@@ -519,6 +529,19 @@ mod tests {
         assert!(o.bearing_rad.unwrap() < 0.0 && o.distance_m.unwrap() < 0.8, "{o:?}");
         // the wall alone is no threat
         assert!(!run(&frame[..2]).present);
+    }
+
+    #[test]
+    fn nothing_beyond_the_stop_is_a_threat() {
+        let mut m = memory();
+        for _ in 0..2 {
+            step(&mut m, STILL, 0.1, &[pt(1.0, 0.05)]);
+        }
+        assert!(m.threat().present);
+        // path half width 0.38 m: a robot that stops 0.3 m on never comes within it of the cell
+        assert!(!m.threat_within(0.3).present, "1.0 m ahead is beyond 0.3 + 0.38 m");
+        let o = m.threat_within(0.7);
+        assert!(o.present && (o.distance_m.unwrap() - (1.0f64.hypot(0.05) - 0.18)).abs() < 0.08, "{o:?}");
     }
 
     #[test]

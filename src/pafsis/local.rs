@@ -26,6 +26,18 @@ const NEW_DOOR_JUMP_M: f64 = 0.5;
 /// (`PafsisParams::cross_track_hold_m`), m.
 const HOLD_LINE_RANGE_M: f64 = 1.0;
 
+/// Door sightings count only while the robot heads within this angle of the leg's direction,
+/// rad (8.6°: 1 % error in the along-corridor distance).
+const DOOR_MAX_OFF_AXIS_RAD: f64 = 0.15;
+
+/// While the matched door stays in view, each frame moves the progress this fraction of the way
+/// to where the frame's door distance puts it (about ten frames' average).
+const DOOR_TRACK_GAIN: f64 = 0.1;
+
+/// A straight leg that follows the current one within this angle continues it
+/// ([`Pafsis::stop_ahead_m`]), rad.
+const STRAIGHT_ON_RAD: f64 = 0.05;
+
 /// A door the robot expects to pass (or stop at) on a corridor leg.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ExpectedDoor {
@@ -377,6 +389,37 @@ impl Pafsis {
         }
     }
 
+    /// How far ahead the plan stops the robot, m: the rest of the current leg plus the straight
+    /// legs after it in the same direction, up to the next turn on the spot or the mission's end.
+    /// `None` when the robot is not driving toward a stop it can measure by odometry (a turn, a
+    /// leg that ends where a corner or wall is seen, a mission that is over).
+    ///
+    /// Nothing farther than this along the path is in the robot's way: a door's jambs or a wall
+    /// beyond the place where it turns need no avoiding (they were what made it dither before
+    /// every turn).
+    pub fn stop_ahead_m(&self) -> Option<f64> {
+        if self.status != GoalStatus::Active {
+            return None;
+        }
+        let current = self.legs.get(self.leg)?;
+        let straight = |leg: &Leg| match &leg.kind {
+            LegKind::Doorway { length_m, .. } => Some(*length_m),
+            LegKind::Corridor { length_m, end: LegEnd::Distance | LegEnd::Door, .. } => Some(*length_m),
+            LegKind::Turn | LegKind::Corridor { .. } => None,
+        };
+        let mut ahead = (straight(current)? - self.along_m).max(0.0);
+        for leg in &self.legs[self.leg + 1..] {
+            if matches!(leg.kind, LegKind::Turn) {
+                break;
+            }
+            if wrap_angle(leg.heading_rad - current.heading_rad).abs() > STRAIGHT_ON_RAD {
+                return None;
+            }
+            ahead += straight(leg)?;
+        }
+        Some(ahead)
+    }
+
     /// Integrates odometry only: for steps without perception (the robot is being stopped),
     /// so that progress stays right.
     pub fn advance_odometry(&mut self, odo: BodyVelocity, dt: f64) {
@@ -469,6 +512,14 @@ impl Pafsis {
             self.last_door_distance = None;
             return;
         }
+        // A door's distance is measured along the optical axis: looking obliquely (swerving
+        // round an obstacle), it is the range to some point of the side wall, not how far along
+        // the corridor the door is. Such frames neither match nor pin.
+        if let Some(leg) = self.legs.get(self.leg)
+            && wrap_angle(self.heading_rad - leg.heading_rad).abs() > DOOR_MAX_OFF_AXIS_RAD
+        {
+            return;
+        }
         if self.streak.1 < self.params.landmark_min_frames {
             return;
         }
@@ -487,8 +538,14 @@ impl Pafsis {
             self.tracking = None;
             self.door_sighted(distance);
         } else if let (Some(at), Some(d)) = (self.tracking, distance) {
-            // Still looking at the matched door: keep the progress estimate pinned to it.
-            self.along_m = at - d;
+            // Still looking at the matched door: pull the progress toward what each frame says,
+            // a little per frame (one frame's door distance is off by 10–20 %), and not at all
+            // from a frame that disagrees by more than the gate (another surface, a mis-ranged
+            // door; pinning to every frame moved the progress 0.74 m on from one such frame).
+            let innovation = at - d - self.along_m;
+            if innovation.abs() <= self.params.landmark_gate_m {
+                self.along_m += DOOR_TRACK_GAIN * innovation;
+            }
         }
     }
 
@@ -664,7 +721,9 @@ impl Pafsis {
                 (self.params.cruise_speed, remaining)
             }
         };
-        let ramp = (remaining / self.params.slow_radius_m).clamp(self.params.min_speed_fraction, 1.0);
+        // constant deceleration: v ∝ √remaining (a linear ramp, v ∝ remaining, approaches the
+        // end exponentially: 8 s for the last metre at 0.35 m/s, against 2.4 s)
+        let ramp = (remaining.max(0.0) / self.params.slow_radius_m).sqrt().clamp(self.params.min_speed_fraction, 1.0);
         let velocity = if speed > 0.0 { speed * ramp * angle.cos().max(0.0) } else { 0.0 };
         Goal { velocity, angle_rad: angle, status: self.status }
     }
