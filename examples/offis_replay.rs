@@ -12,6 +12,12 @@
 //! class differs from the stored one, `--details` with its features and planes. `--rules DIR`
 //! takes the rule bases from `DIR` instead of the built-in ones.
 //!
+//! The bench shows each scene as a short drive and reports the TPO decided over its last frame
+//! pairs (`offis::temporal`); the report stores the *last* pair's profile only, so this replays
+//! the last pair's own decision (`Attributes::decision`), not the filtered one: a class that
+//! differs from the stored one may be the filter's doing, not a change. A change to the plane
+//! fit or the rules is still measured on the single pairs here, then with `bench-offis`.
+//!
 //! Bin bearings are not stored in the report: each bin's bearing is the median bearing of its
 //! envelope points over the file (the bench drives straight, so they do not change). Obstacle
 //! figures need the flow field and are not replayed.

@@ -13,10 +13,10 @@
 //!
 //! Steps that cannot be reproduced are reported, not counted as mismatches: when the logger
 //! dropped the image of a step's frame or of its previous frame (images are dropped first under
-//! load), that step is *unchecked*; the pipeline state after it (limiter, PAFSIS progress) may
-//! then differ from the run's, so later steps are still compared but counted apart
-//! (`after_gap`), until a logged `fail_safe` resets the state (runs without a mission only; PAFSIS
-//! progress cannot be resynchronised).
+//! load), that step is *unchecked*; the pipeline state after it (limiter, PAFSIS progress, the
+//! TPO that OFFIS decides over its last steps) may then differ from the run's, so later steps
+//! are still compared but counted apart (`after_gap`), until a logged `fail_safe` resets the
+//! state (runs without a mission only; PAFSIS progress cannot be resynchronised).
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};

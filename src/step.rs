@@ -24,6 +24,7 @@ use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::stall::{Manoeuvre, StallRecovery};
 use crate::mofis::{Mofis, MofisError, MofisOutput};
 use crate::offis::points::SurfacePoint;
+use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
 use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
 use crate::perception::{Obstacle, Perception};
@@ -254,6 +255,7 @@ impl Pipeline {
     /// the previous frame so the next pair does not span the gap.
     pub fn fail_safe(&mut self) -> BodyVelocity {
         self.key = None;
+        self.offis.reset_filter();
         self.memory.clear();
         self.stall.reset();
         self.last_setpoint = BodyVelocity::ZERO;
@@ -294,7 +296,9 @@ impl Pipeline {
         // the pair's motion as one constant velocity over its interval
         let span = BodyVelocity::new(key.travel_m / dt, key.yaw_rad / dt);
         let flow = self.flow.compute(&key.frame.image, &frame.image)?.clone();
-        let perception = self.offis.step(&flow, span, dt, &calib)?;
+        // the TPO is decided over the last steps: OFFIS needs the turn since its previous step
+        let since = Motion { yaw_rad: odometry.omega * frame_dt, dt: frame_dt };
+        let perception = self.offis.step_filtered(&flow, span, dt, &calib, since)?;
         let measured = self.memory.measurable(span, dt, key.turn_change);
         let (seq, t_ns) = (frame.seq, frame.t_ns);
         if key.travel_m.abs() >= self.pairing.min_baseline_m || dt >= self.pairing.max_span_s {

@@ -1,9 +1,9 @@
 //! The OFFIS accuracy benchmark (`flownav bench-offis`): a labelled scene set rendered with
 //! `mocks::scene` (walls, corners, doors, corridors and empty floor at varied distances, widths
-//! and angles, half of them with a box or a person in front, with sensor noise), each seen as
-//! one frame pair while the camera drives forward, run through the real per-frame pipeline
-//! ([`crate::step::Pipeline`]: flow, OFFIS) and compared with the ground truth
-//! (`mocks::truth`).
+//! and angles, half of them with a box or a person in front, with sensor noise), each seen as a
+//! short sequence of frames while the camera drives forward, run through the real per-frame
+//! pipeline ([`crate::step::Pipeline`]: flow, OFFIS with its temporal filter) and compared with
+//! the ground truth (`mocks::truth`) at the last frame.
 //!
 //! Deterministic for a seed: scene `i` of seed `s` draws its parameters from
 //! `SplitMix64(s · 1_000_003 + i)`.
@@ -48,15 +48,23 @@ pub struct BenchOptions {
     pub noise: f64,
     /// Fraction of the scenes with an obstacle.
     pub obstacle_frac: f64,
+    /// Frames per scene: the camera drives straight ahead through them, the last one at the
+    /// scene's start pose (where the truth is taken); at least 2 (one frame pair).
+    pub frames: usize,
 }
 
 impl Default for BenchOptions {
     fn default() -> Self {
-        Self { scenes: 200, seed: 2, velocity: 0.3, fps: [10.0, 30.0], noise: 2.0, obstacle_frac: 0.5 }
+        Self { scenes: 200, seed: 2, velocity: 0.3, fps: [10.0, 30.0], noise: 2.0, obstacle_frac: 0.5, frames: FRAMES }
     }
 }
 
-/// One rendered, labelled frame pair.
+/// Frames per scene by default: 8 frame pairs, so the TPO filter's window
+/// ([`super::temporal::TemporalParams::window`], 8 steps) is full at the last frame; 0.27–0.8 s
+/// of driving at 10–30 fps, 8–24 cm at 0.3 m/s.
+pub const FRAMES: usize = 9;
+
+/// One labelled scene.
 #[derive(Clone, Debug)]
 pub struct Case {
     pub label: String,
@@ -203,6 +211,31 @@ fn quantiles(mut v: Vec<f64>) -> [f64; 2] {
     [at(0.5), at(0.9)]
 }
 
+/// Renders scene `index` (case `c`) as `opts.frames` frames into `out`: the camera drives
+/// straight ahead at `opts.velocity`, one frame every `1 / c.fps` s, and the last frame is taken
+/// at the scene's start pose. Sensor noise is drawn anew for every frame.
+pub fn render_sequence(c: &Case, calib: &Calibration, opts: &BenchOptions, index: usize, out: &mut Vec<Frame>) {
+    out.clear();
+    let dt = 1.0 / c.fps;
+    let end = c.scene.start(calib);
+    let renderer = Renderer::new(&c.scene.world, calib);
+    let effects = Effects {
+        noise_sigma: opts.noise,
+        seed: opts.seed.wrapping_mul(7919).wrapping_add(index as u64),
+        ..Effects::default()
+    };
+    let pose = |j: usize| {
+        let back = opts.velocity * dt * (opts.frames - 1 - j) as f64;
+        Pose::new(end.x - back * end.yaw.cos(), end.y - back * end.yaw.sin(), end.yaw)
+    };
+    for j in 0..opts.frames {
+        let mut image = LumaImage::default();
+        renderer.render_frame(pose(j.saturating_sub(1)), pose(j), &effects, j as u64, &mut image);
+        let t_ns = 1_000_000_000 + (j as f64 * dt * 1e9).round() as u64;
+        out.push(Frame { seq: j as u64, t_ns, image });
+    }
+}
+
 /// Renders the scene set at the size of `calib` and runs it through the pipeline of `cfg`.
 /// `progress` is called after each scene.
 pub fn run(
@@ -217,33 +250,25 @@ pub fn run(
     if !(opts.velocity.is_finite() && opts.velocity > 0.0 && opts.fps[0] > 0.0 && opts.fps[1] >= opts.fps[0]) {
         return Err(BenchError::Options("velocity and frame rates must be positive".into()));
     }
+    if opts.frames < 2 {
+        return Err(BenchError::Options("a scene needs at least 2 frames (one frame pair)".into()));
+    }
     let mut pipeline = Pipeline::new(cfg, calib.clone(), None)?;
     let mut samples = Vec::with_capacity(opts.scenes);
-    let (mut img_a, mut img_b) = (LumaImage::default(), LumaImage::default());
+    let mut frames = Vec::new();
     for i in 0..opts.scenes {
         let c = case(opts.seed, i, opts);
-        let dt = 1.0 / c.fps;
-        let pose_b = c.scene.start(calib);
-        let back = opts.velocity * dt;
-        let pose_a = Pose::new(pose_b.x - back * pose_b.yaw.cos(), pose_b.y - back * pose_b.yaw.sin(), pose_b.yaw);
-        let renderer = Renderer::new(&c.scene.world, calib);
-        let effects = Effects {
-            noise_sigma: opts.noise,
-            seed: opts.seed.wrapping_mul(7919).wrapping_add(i as u64),
-            ..Effects::default()
-        };
-        renderer.render_frame(pose_a, pose_a, &effects, 0, &mut img_a);
-        renderer.render_frame(pose_a, pose_b, &effects, 1, &mut img_b);
-        let truth = GroundTruth::new(&c.scene.world, calib).frame(pose_b);
+        render_sequence(&c, calib, opts, i, &mut frames);
+        let truth = GroundTruth::new(&c.scene.world, calib).frame(c.scene.start(calib));
         let odo = BodyVelocity::new(opts.velocity, 0.0);
+        // a new scene: nothing of the last one is remembered (a pair gap, as after a stop)
         pipeline.fail_safe();
         let step_err = |source| BenchError::Step { index: i, scene: c.label.clone(), source: Box::new(source) };
-        pipeline.step(Frame { seq: 0, t_ns: 1_000_000_000, image: img_a.clone() }, odo).map_err(step_err)?;
-        let t_ns = 1_000_000_000 + (dt * 1e9).round() as u64;
-        let out = pipeline
-            .step(Frame { seq: 1, t_ns, image: img_b.clone() }, odo)
-            .map_err(step_err)?
-            .expect("the second frame of a pair gives a step");
+        let mut last = None;
+        for frame in frames.drain(..) {
+            last = pipeline.step(frame, odo).map_err(step_err)?;
+        }
+        let out = last.expect("a sequence of at least two frames gives a step");
         let p: &Perception = &out.perception;
         let sample = Sample {
             index: i,

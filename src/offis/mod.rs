@@ -17,6 +17,11 @@
 //! | envelope profile, plane fit, classifier features | §5 | [`features`] |
 //! | obstacle: blocks clearly nearer than the TPO planes, then Fig. 6 on them | §3.1 | [`Offis::step`] |
 //! | rough + three fine classifiers, TPO decision by maximum | §5, Fig. 11–13 | [`classify`] |
+//! | TPO decision over the last steps (class memberships averaged while driving) | ours | [`temporal`] |
+//!
+//! [`Offis::step`] sees one frame pair alone; [`Offis::step_filtered`], which the per-frame
+//! pipeline calls, also takes the robot's motion since the previous step and reports the TPO
+//! decided over the last few steps ([`temporal`]).
 //!
 //! The step is pure and deterministic: no clock, no I/O; its buffers are reused between frames.
 
@@ -29,6 +34,7 @@ pub mod points;
 pub mod quadrants;
 pub mod structure;
 pub mod synth;
+pub mod temporal;
 
 use crate::flow::FlowField;
 use crate::perception::{Obstacle, Perception, Tpo, TpoShape};
@@ -41,6 +47,7 @@ use planes::{PlaneTolerance, TiltParams};
 use quadrants::{Grid, OutlierParams, Quadrants, Zoom};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+use temporal::{ClassFilter, Filtered, Motion, TemporalParams};
 
 /// Why a step could not run; each names the input and what to do.
 #[derive(Debug, thiserror::Error)]
@@ -62,7 +69,7 @@ pub enum OffisError {
 }
 
 /// OFFIS parameters: the `[offis]` table of the config file (sub-tables `[offis.outlier]`,
-/// `[offis.plane]`, `[offis.tilt]`, `[offis.depth]`, and `rules_dir`).
+/// `[offis.plane]`, `[offis.tilt]`, `[offis.depth]`, `[offis.temporal]`, and `rules_dir`).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct OffisParams {
@@ -75,6 +82,7 @@ pub struct OffisParams {
     pub plane: PlaneTolerance,
     pub tilt: TiltParams,
     pub depth: DepthParams,
+    pub temporal: TemporalParams,
 }
 
 impl OffisParams {
@@ -82,7 +90,8 @@ impl OffisParams {
     pub fn check(&self) -> Result<(), (String, String)> {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
-        let checks: [(&str, bool, &str); 14] = [
+        let t = &self.temporal;
+        let checks: [(&str, bool, &str); 17] = [
             ("outlier.k_median", pos(self.outlier.k_median), "must be a positive number (typ. 2..5)"),
             ("outlier.floor_px", nonneg(self.outlier.floor_px), "must be ≥ 0 pixels"),
             ("outlier.min_support", self.outlier.min_support <= 8, "must be in 0..=8 neighbours"),
@@ -105,6 +114,17 @@ impl OffisParams {
             ),
             ("depth.reliable_radial_px", nonneg(self.depth.reliable_radial_px), "must be ≥ 0 pixels"),
             ("depth.floor_rel", nonneg(self.depth.floor_rel) && self.depth.floor_rel < 1.0, "must be in [0, 1)"),
+            (
+                "temporal.window",
+                (1..=temporal::MAX_WINDOW).contains(&t.window),
+                "must be in 1..=64 steps (1 = no filtering)",
+            ),
+            ("temporal.decay", pos(t.decay) && t.decay <= 1.0, "must be in (0, 1]"),
+            (
+                "temporal.max_turn_rad",
+                pos(t.max_turn_rad) && pos(t.max_age_s),
+                "and temporal.max_age_s must be positive",
+            ),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err((format!("offis.{field}"), problem.to_string())),
@@ -146,8 +166,12 @@ pub struct Attributes {
     pub model: TpoModel,
     /// The classifier inputs.
     pub features: Features,
-    /// The classifiers' degrees and the TPO decision (default when not translating).
+    /// The classifiers' degrees and the TPO decision of this frame pair alone (default when not
+    /// translating).
     pub decision: Decision,
+    /// The TPO decision reported: over the last steps ([`temporal`]; `steps` 0 when not
+    /// translating).
+    pub filtered: Filtered,
     /// Blocks found clearly nearer than the TPO planes, and those of the reported obstacle.
     pub obstacle_blocks: usize,
     pub obstacle_cluster: usize,
@@ -158,6 +182,7 @@ pub struct Attributes {
 pub struct Offis {
     params: OffisParams,
     classifier: Classifier,
+    filter: ClassFilter,
     u: Vec<f64>,
     v: Vec<f64>,
     valid: Vec<bool>,
@@ -180,6 +205,7 @@ impl Offis {
     pub fn new(params: OffisParams) -> Result<Self, ClassifyError> {
         let classifier = Classifier::load(params.rules_dir.as_deref())?;
         Ok(Self {
+            filter: ClassFilter::new(params.temporal),
             params,
             classifier,
             u: Vec::new(),
@@ -207,15 +233,38 @@ impl Offis {
         &self.attributes
     }
 
-    /// One frame pair: `flow` from frame A to frame B, the odometry `odo` over the interval, the
-    /// interval `dt` (s) and the camera calibration (scaled to the flow's image size if it
-    /// differs). The perception describes the scene at frame B.
+    /// One frame pair alone: `flow` from frame A to frame B, the odometry `odo` over the
+    /// interval, the interval `dt` (s) and the camera calibration (scaled to the flow's image
+    /// size if it differs). The perception describes the scene at frame B. Nothing of earlier
+    /// steps is used (the temporal filter is reset).
     pub fn step(
         &mut self,
         flow: &FlowField,
         odo: BodyVelocity,
         dt: f64,
         calib: &Calibration,
+    ) -> Result<Perception, OffisError> {
+        self.filter.reset();
+        self.step_filtered(flow, odo, dt, calib, Motion::default())
+    }
+
+    /// Forgets the earlier steps of the temporal filter (a gap in the sequence: a stop, a stall,
+    /// a failure).
+    pub fn reset_filter(&mut self) {
+        self.filter.reset();
+    }
+
+    /// One frame pair of a sequence, as [`Offis::step`], with `since` the robot's motion since
+    /// the previous call (its turn from the per-frame odometry, the frame interval): the TPO
+    /// reported is decided over the last steps ([`temporal`]); obstacle, masks and the TPO
+    /// distance are this pair's (the distance for the filtered shape, from this pair's planes).
+    pub fn step_filtered(
+        &mut self,
+        flow: &FlowField,
+        odo: BodyVelocity,
+        dt: f64,
+        calib: &Calibration,
+        since: Motion,
     ) -> Result<Perception, OffisError> {
         let grid = Grid::new(flow.rows, flow.cols).ok_or(OffisError::Grid { rows: flow.rows, cols: flow.cols })?;
         if flow.vectors.len() != grid.len() {
@@ -344,6 +393,9 @@ impl Offis {
         } else {
             Decision::default()
         };
+        // the decision over the last steps; a step without translation measures nothing
+        self.filter.advance(since);
+        let filtered = if foe.is_some() { self.filter.push(&decision) } else { Filtered::default() };
 
         // The obstacle: blocks clearly nearer than the TPO's surface in their bin, grouped into
         // 8-connected clusters; the nearest sizeable cluster, its cell by Fig. 6 on its blocks.
@@ -383,7 +435,7 @@ impl Offis {
             None => (Obstacle::default(), 0),
         };
 
-        let tpo_distance = match decision.shape {
+        let tpo_distance = match filtered.shape {
             TpoShape::Wall | TpoShape::Door => model
                 .planes()
                 .filter(|l| l.heading_angle_deg() >= 30.0)
@@ -425,10 +477,11 @@ impl Offis {
             model,
             features,
             decision,
+            filtered,
             obstacle_blocks,
             obstacle_cluster,
         };
-        let tpo = Tpo { shape: decision.shape, confidence: decision.confidence, distance_m: tpo_distance };
+        let tpo = Tpo { shape: filtered.shape, confidence: filtered.confidence, distance_m: tpo_distance };
         Ok(Perception { tpo, obstacle, rough, fine })
     }
 

@@ -326,3 +326,58 @@ fn the_floor_is_never_the_obstacle() {
     let pair = Scene { rects: vec![Rect::floor()] }.flow(&c, 16, 16, vel, DT);
     assert!(!offis.step(&pair.field, vel, DT, &c).unwrap().obstacle.present);
 }
+
+#[test]
+fn step_filtered_holds_the_class_through_one_odd_pair_and_forgets_it_after_a_turn() {
+    let c = Calibration::nominal_c310();
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let floor = Rect::floor();
+    let door = Scene {
+        rects: vec![
+            Rect::frontal(2.6, [0.5, 10.0], Z),
+            Rect::frontal(2.6, [-10.0, -0.5], Z),
+            Rect::frontal(5.6, [-10.0, 10.0], Z),
+            floor,
+        ],
+    };
+    // the same wall without its opening: what a pair sees when something hides the opening
+    let hidden = Scene { rects: vec![Rect::frontal(2.6, [-10.0, 10.0], Z), floor] };
+    let (door, hidden) = (door.flow(&c, 16, 16, vel, DT).field, hidden.flow(&c, 16, 16, vel, DT).field);
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT };
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
+    for _ in 0..4 {
+        assert_eq!(offis.step_filtered(&door, vel, DT, &c, ahead).unwrap().tpo.shape, TpoShape::Door);
+    }
+    let p = offis.step_filtered(&hidden, vel, DT, &c, ahead).unwrap();
+    let a = offis.attributes();
+    assert_eq!((a.decision.shape, a.filtered.steps), (TpoShape::Wall, 5), "this pair alone says wall");
+    assert_eq!(p.tpo.shape, TpoShape::Door, "one odd pair does not flip the class: {:?}", a.filtered);
+    assert!((p.tpo.distance_m.unwrap() - 2.45).abs() < 0.02, "the distance is this pair's wall: {:?}", p.tpo);
+    // standing still measures nothing: none, and the window is kept
+    let still = offis.step_filtered(&door, BodyVelocity::ZERO, DT, &c, ahead).unwrap();
+    assert_eq!((still.tpo.shape, offis.attributes().filtered.steps), (TpoShape::None, 0));
+    assert_eq!(offis.step_filtered(&door, vel, DT, &c, ahead).unwrap().tpo.shape, TpoShape::Door);
+    assert_eq!(offis.attributes().filtered.steps, 6);
+    // after a turn of 0.3 rad the wall in view decides alone
+    let turned = temporal::Motion { yaw_rad: 0.3, dt: DT };
+    let p = offis.step_filtered(&hidden, vel, DT, &c, turned).unwrap();
+    assert_eq!((p.tpo.shape, offis.attributes().filtered.steps), (TpoShape::Wall, 1));
+    // Offis::step is the pair alone, whatever came before
+    for _ in 0..4 {
+        offis.step_filtered(&door, vel, DT, &c, ahead).unwrap();
+    }
+    assert_eq!(offis.step(&hidden, vel, DT, &c).unwrap().tpo.shape, TpoShape::Wall);
+}
+
+#[test]
+fn the_temporal_table_is_range_checked() {
+    let ok = OffisParams::default();
+    assert_eq!(ok.check(), Ok(()));
+    let bad = |temporal| OffisParams { temporal, ..OffisParams::default() }.check().unwrap_err().0;
+    let t = temporal::TemporalParams::default();
+    assert_eq!(bad(temporal::TemporalParams { window: 0, ..t }), "offis.temporal.window");
+    assert_eq!(bad(temporal::TemporalParams { decay: 1.5, ..t }), "offis.temporal.decay");
+    assert_eq!(bad(temporal::TemporalParams { max_age_s: 0.0, ..t }), "offis.temporal.max_turn_rad");
+    let parsed: OffisParams = toml::from_str("[temporal]\nwindow = 1\n").unwrap();
+    assert_eq!((parsed.temporal.window, parsed.temporal.decay), (1, 0.8));
+}
