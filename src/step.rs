@@ -325,8 +325,9 @@ impl Pipeline {
             Navigator::Mission(pafsis) => pafsis.stop_ahead_m(),
             Navigator::Cruise(_) => None,
         };
-        let reach = stop_ahead.map_or(f64::INFINITY, |d| d + mp.robot_radius_m + mp.path_margin_m);
-        let avoided = self.memory.threat_within(stop_ahead.unwrap_or(f64::INFINITY));
+        let stop_ahead = stop_ahead.unwrap_or(f64::INFINITY);
+        let horizon = self.memory.horizon(stop_ahead);
+        let avoided = self.memory.threat_within(stop_ahead);
         // pushing against something unseen: turn away on the spot, to the freer side
         let memory = &self.memory;
         let recoveries_before = self.stall.recoveries();
@@ -357,16 +358,16 @@ impl Pipeline {
             true => {
                 let centred = goal.angle_rad
                     + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                let lookahead = STEER_LOOKAHEAD_M.min(reach);
+                let lookahead = STEER_LOOKAHEAD_M.min(horizon);
                 Goal { angle_rad: self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD), ..goal }
             }
             false => goal,
         };
         // the distance ahead: the free path along the heading in the memory (the TPO's wall
-        // distance is one frame's guess; the memory has what was seen solid, over frames)
-        // distance ahead, and nothing there (the sensing range) when the path is free up to the stop
+        // distance is one frame's guess; the memory has what was seen solid, over frames), and
+        // nothing there (the sensing range) when the path is free up to where the robot stops
         let free = self.memory.free_distance(0.0, self.mofis_range);
-        let front = match free >= reach {
+        let front = match free >= horizon {
             true => self.mofis_range,
             false => free - mp.robot_radius_m,
         };

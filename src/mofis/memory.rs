@@ -300,6 +300,7 @@ impl ObstacleMemory {
     pub fn threat_within(&self, reach_m: f64) -> Obstacle {
         let p = &self.params;
         let path = p.robot_radius_m + p.path_margin_m;
+        let horizon = self.horizon(reach_m);
         let side = p.robot_radius_m + p.side_margin_m;
         let mut in_path: Option<(f64, [f64; 2])> = None;
         let mut beside: Option<(f64, [f64; 2])> = None;
@@ -313,7 +314,7 @@ impl ObstacleMemory {
             }
             let range = f.hypot(l);
             if l.abs() <= path && f > 0.0 {
-                if f > reach_m + path {
+                if f > horizon {
                     continue;
                 }
                 if in_path.is_none_or(|(d, _)| f < d) {
@@ -332,6 +333,13 @@ impl ObstacleMemory {
             },
             None => Obstacle::default(),
         }
+    }
+
+    /// How far ahead of its origin the path of a robot that stops after `reach_m` matters:
+    /// `reach_m + robot_radius_m + path_margin_m`, m (a cell farther along is never within the
+    /// margin of its footprint).
+    pub fn horizon(&self, reach_m: f64) -> f64 {
+        reach_m + self.params.robot_radius_m + self.params.path_margin_m
     }
 
     /// How far the robot can drive along `heading` (rad, robot frame, + left) before its

@@ -187,15 +187,22 @@ impl Classifier {
             g_bent.min(corridor),
             g_empty.min(none_empty).max(g_flat.min(none_flat)).max(g_bent.min(none_bent)),
         ];
-        let mut best = 4;
-        for k in 0..4 {
-            if classes[k] > classes[best] || (classes[k] == classes[best] && k < best && classes[k] > 0.0) {
-                best = k;
-            }
-        }
-        // TpoShape::ALL is wall, corner, door, corridor, none
+        let best = decide(&classes);
         Ok(Decision { shape: TpoShape::ALL[best], confidence: classes[best], groups, classes })
     }
+}
+
+/// The TPO decision by maximum over class memberships in [`TpoShape::ALL`] order (wall, corner,
+/// door, corridor, none): the index of the largest, ties to the first; `none` (4) when no class
+/// has any membership.
+pub(crate) fn decide(classes: &[f64; 5]) -> usize {
+    let mut best = 4;
+    for k in 0..4 {
+        if classes[k] > classes[best] || (classes[k] == classes[best] && k < best && classes[k] > 0.0) {
+            best = k;
+        }
+    }
+    best
 }
 
 #[cfg(test)]

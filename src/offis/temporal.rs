@@ -140,12 +140,7 @@ impl ClassFilter {
             w *= self.params.decay;
         }
         let classes = sum.map(|s| s / weight);
-        let mut best = 4;
-        for k in 0..4 {
-            if classes[k] > classes[best] || (classes[k] == classes[best] && k < best && classes[k] > 0.0) {
-                best = k;
-            }
-        }
+        let best = super::classify::decide(&classes);
         Filtered { shape: TpoShape::ALL[best], confidence: classes[best], classes, steps: self.entries.len() }
     }
 }
