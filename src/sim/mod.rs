@@ -492,6 +492,17 @@ pub async fn run(
                 pipeline.pafsis().map_or(0, |p| p.progress().leg)
             );
         }
+        if tracing::enabled!(target: "flownav::sim::cells", tracing::Level::TRACE) {
+            // the obstacle memory's occupied cells and this step's surface points within 1.5 m,
+            // placed in the world with the true pose (to compare with the world's obstacles)
+            let (s, c) = pose.yaw.sin_cos();
+            let world = |[f, l]: [f64; 2]| format!("({:.2},{:.2})", pose.x + c * f - s * l, pose.y + s * f + c * l);
+            let near = |p: &[f64; 2]| p[0].hypot(p[1]) <= 1.5;
+            let cells: Vec<String> = pipeline.memory().occupied().into_iter().filter(near).map(world).collect();
+            let pts: Vec<String> =
+                pipeline.surface_points().iter().map(|p| [p.forward, p.left]).filter(near).map(world).collect();
+            tracing::trace!(target: "flownav::sim::cells", "cells t={t_s:.3} occupied=[{}] points=[{}]", cells.join(" "), pts.join(" "));
+        }
         if let Some(p) = pipeline.pafsis_mut() {
             for ev in p.take_events() {
                 use crate::pafsis::PafsisEvent as E;
