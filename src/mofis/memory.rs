@@ -18,10 +18,11 @@
 //!   beyond `max_range_m` are forgotten;
 //! - a cell is *occupied* when its evidence reaches `occupied`: seen in at least two frames.
 //!
-//! The obstacle handed to MOFIS is the most threatening occupied cell: the nearest one in the
-//! robot's path (ahead, within `robot_radius_m + path_margin_m` of the heading line), else the
-//! nearest one close beside the path (within `robot_radius_m + side_margin_m`), with its range
-//! and bearing from the robot's origin. Walls and boxes alike: a wall the robot drives at is in
+//! The obstacle handed to MOFIS is the most threatening occupied cell ahead of the robot's
+//! origin: the nearest one in its path (within `robot_radius_m + path_margin_m` of the heading
+//! line), or just beside it (within `side_margin_m` more), reported farther away the farther
+//! beyond the path it lies ([`ObstacleMemory::threat_within`]), with its bearing from the
+//! robot's origin. Walls and boxes alike: a wall the robot drives at is in
 //! its path, a corridor wall beside it is not.
 //!
 //! Pure and deterministic: the cells live in a `BTreeMap`, so the same inputs give the same
@@ -43,6 +44,11 @@ pub struct MemoryParams {
     pub half_life_view_s: f64,
     /// Evidence half-life of a cell out of view (beside or behind the robot), s.
     pub half_life_aside_s: f64,
+    /// Evidence half-life of a cell marked by a contact, per distance driven, m ...
+    pub contact_half_life_m: f64,
+    /// ... and over time, s: what the robot touched is certain, unlike a flow point, and the
+    /// robot is still beside it when it turns back toward its goal.
+    pub contact_half_life_s: f64,
     /// Evidence at which a cell is occupied (1 per frame that saw it).
     pub occupied: f64,
     /// Evidence cap (how long a solid thing is remembered once out of view).
@@ -54,8 +60,9 @@ pub struct MemoryParams {
     pub robot_radius_m: f64,
     /// Clearance kept to either side of the robot's path, m.
     pub path_margin_m: f64,
-    /// Occupied cells within `robot_radius_m + side_margin_m` of the heading line, but outside
-    /// the path, are reported when nothing is in the path (steer away gently), m.
+    /// Occupied cells up to this far beyond the path are a threat too, reported farther away
+    /// the farther beyond (by [`SIDE_FADE_M`] at this edge), m: the threat fades instead of
+    /// switching off when a cell leaves the path.
     pub side_margin_m: f64,
     /// Cells behind the robot's origin by more than this are ignored for the threat, m.
     pub behind_m: f64,
@@ -87,6 +94,8 @@ impl Default for MemoryParams {
             cell_m: 0.1,
             half_life_view_s: 0.5,
             half_life_aside_s: 4.0,
+            contact_half_life_m: 1.0,
+            contact_half_life_s: 15.0,
             occupied: 1.5,
             max_evidence: 4.0,
             max_range_m: 4.0,
@@ -113,6 +122,8 @@ impl MemoryParams {
             ("cell_m", pos(self.cell_m) && self.cell_m <= 1.0, "must be in (0, 1] m"),
             ("half_life_view_s", pos(self.half_life_view_s), "must be a positive time in s"),
             ("half_life_aside_s", pos(self.half_life_aside_s), "must be a positive time in s"),
+            ("contact_half_life_m", pos(self.contact_half_life_m), "must be a positive distance in m"),
+            ("contact_half_life_s", pos(self.contact_half_life_s), "must be a positive time in s"),
             ("occupied", pos(self.occupied), "must be a positive evidence (frames)"),
             ("max_evidence", self.max_evidence.is_finite() && self.max_evidence >= self.occupied, "must be ≥ occupied"),
             ("max_range_m", pos(self.max_range_m), "must be a positive distance in m"),
@@ -162,10 +173,21 @@ pub struct ObstacleMemory {
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Cell {
     evidence: f64,
+    /// Marked by a contact ([`ObstacleMemory::mark_contact`]), not seen.
+    contact: bool,
     /// The highest point that voted for the cell, m above the floor: a ray from the camera that
     /// passes over the cell lower than this would have hit what is there.
     top_m: f64,
 }
+
+/// A cell `side_margin_m` beyond the robot's path is reported this much farther away than it is,
+/// m: far, for MOFIS's rule bases (their `far` starts at 2–3 m).
+pub const SIDE_FADE_M: f64 = 3.0;
+
+/// The side band is `side_margin_m` wide beside the robot and narrows linearly to nothing this
+/// far ahead, m: the jitter of the heading moves near cells in and out of the path, and a wall
+/// 2 m ahead half a metre beside the path is no reason to swerve.
+pub const SIDE_REACH_M: f64 = 1.2;
 
 /// Bearing sectors across the field of view for the seen-through test.
 const SECTORS: usize = 24;
@@ -226,6 +248,8 @@ impl ObstacleMemory {
             self.pose.yaw = crate::pafsis::map::wrap_angle(self.pose.yaw + odo.omega * dt);
             let p = self.params;
             let (k_view, k_aside) = (0.5f64.powf(dt / p.half_life_view_s), 0.5f64.powf(dt / p.half_life_aside_s));
+            let driven = (odo.v * dt).abs();
+            let k_contact = 0.5f64.powf(driven / p.contact_half_life_m + dt / p.contact_half_life_s);
             let (half_fov, cell) = (self.half_fov_rad, p.cell_m);
             // what the camera measured along each bearing sector this step
             self.seen.resize_with(SECTORS, Vec::new);
@@ -248,7 +272,11 @@ impl ObstacleMemory {
                     && sector(l.atan2(f), half_fov).is_some_and(|k| {
                         seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
                     });
-                c.evidence *= if through { k_view } else { k_aside };
+                c.evidence *= match (c.contact, through) {
+                    (true, _) => k_contact,
+                    (false, true) => k_view,
+                    (false, false) => k_aside,
+                };
                 range <= p.max_range_m && c.evidence >= 0.05
             });
         }
@@ -265,7 +293,7 @@ impl ObstacleMemory {
         self.touched.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)));
         self.touched.dedup_by_key(|t| t.0);
         for &(key, up) in &self.touched {
-            let c = self.cells.entry(key).or_insert(Cell { evidence: 0.0, top_m: up });
+            let c = self.cells.entry(key).or_insert(Cell { evidence: 0.0, contact: false, top_m: up });
             c.evidence = (c.evidence + 1.0).min(self.params.max_evidence);
             c.top_m = c.top_m.max(up);
         }
@@ -274,7 +302,10 @@ impl ObstacleMemory {
     /// Records a contact the camera could not see (the robot stalled while driving forward):
     /// the cells on an arc of `±half_arc_rad` just in front of the robot's footprint become
     /// solid, so that the path ahead reads blocked and the robot steers around what it touched.
-    /// They fade like any cell out of view.
+    /// They fade with the distance driven (`contact_half_life_m`) and slowly with time
+    /// (`contact_half_life_s`), not like what the camera saw: the robot is still beside what it
+    /// touched when it turns back toward the goal, and turning back into it again and again
+    /// was the stall loop.
     pub fn mark_contact(&mut self, half_arc_rad: f64) {
         let p = self.params;
         let r = p.robot_radius_m + 0.5 * p.cell_m;
@@ -284,7 +315,7 @@ impl ObstacleMemory {
             let b = if n == 0 { 0.0 } else { half_arc_rad.abs() * k as f64 / n as f64 };
             let key = self.cell_at(r * b.cos(), r * b.sin());
             // as tall as anything: no ray clears a contact
-            self.cells.insert(key, Cell { evidence: p.max_evidence, top_m: f64::INFINITY });
+            self.cells.insert(key, Cell { evidence: p.max_evidence, contact: true, top_m: f64::INFINITY });
         }
     }
 
@@ -297,40 +328,47 @@ impl ObstacleMemory {
     /// [`threat`](Self::threat) for a robot that will stop before its origin has driven
     /// `reach_m` further: cells in the path beyond `reach_m + robot_radius_m + path_margin_m`
     /// ahead are not in its way.
+    ///
+    /// Cells ahead of the robot's origin count within the path (`robot_radius_m +
+    /// path_margin_m` of the heading line) at their distance, and in a side band beyond it
+    /// (`side_margin_m` wide beside the robot, narrowing to nothing [`SIDE_REACH_M`] ahead) at
+    /// a distance that grows with how far into the band: by [`SIDE_FADE_M`] at its outer
+    /// edge, where MOFIS's rules call an obstacle far. The nearest by that distance is the
+    /// threat. So a box that a small turn takes out of the path fades out of MOFIS's view
+    /// instead of vanishing, and the threat does not jump to a wall behind it and back while
+    /// the robot's heading jitters (each jump flipped the avoidance turn).
     pub fn threat_within(&self, reach_m: f64) -> Obstacle {
         let p = &self.params;
         let path = p.robot_radius_m + p.path_margin_m;
         let horizon = self.horizon(reach_m);
-        let side = p.robot_radius_m + p.side_margin_m;
-        let mut in_path: Option<(f64, [f64; 2])> = None;
-        let mut beside: Option<(f64, [f64; 2])> = None;
+        let mut best: Option<(f64, [f64; 2])> = None;
         for (key, c) in &self.cells {
             if c.evidence < p.occupied {
                 continue;
             }
-            let [f, l] = self.to_robot(*key);
-            if f < -p.behind_m {
+            let [along, across] = self.to_robot(*key);
+            // a round robot driving forward never meets what is beside or behind its origin
+            if along <= -p.behind_m || along > horizon {
                 continue;
             }
-            let range = f.hypot(l);
-            if l.abs() <= path && f > 0.0 {
-                if f > horizon {
-                    continue;
-                }
-                if in_path.is_none_or(|(d, _)| f < d) {
-                    in_path = Some((f, [f, l]));
-                }
-            } else if l.abs() <= side && beside.is_none_or(|(d, _)| range < d) {
-                beside = Some((range, [f, l]));
+            // the side band narrows to nothing at SIDE_REACH_M ahead: far cells count only in
+            // the path, as before, and a cell fades out continuously wherever it leaves the band
+            let beyond = across.abs() - path;
+            let band = p.side_margin_m * (1.0 - along / SIDE_REACH_M).max(0.0);
+            let fade = match beyond <= 0.0 {
+                true => 0.0,
+                false if beyond < band => SIDE_FADE_M * beyond / band,
+                false => continue,
+            };
+            let d = (along.hypot(across) - p.robot_radius_m).max(0.0) + fade;
+            if best.is_none_or(|(bd, _)| d < bd) {
+                best = Some((d, [along, across]));
             }
         }
-        match in_path.or(beside) {
-            Some((_, [f, l])) => Obstacle {
-                present: true,
-                distance_m: Some((f.hypot(l) - p.robot_radius_m).max(0.0)),
-                bearing_rad: Some(l.atan2(f)),
-                cell: None,
-            },
+        match best {
+            Some((d, [f, l])) => {
+                Obstacle { present: true, distance_m: Some(d), bearing_rad: Some(l.atan2(f)), cell: None }
+            }
             None => Obstacle::default(),
         }
     }
@@ -503,6 +541,29 @@ mod tests {
     }
 
     #[test]
+    fn a_contact_is_remembered_while_the_robot_stays_and_fades_as_it_drives_away() {
+        let mut m = memory();
+        // something seen 0.35 m to the left, and a contact ahead
+        for _ in 0..4 {
+            step(&mut m, STILL, 0.1, &[pt(1.0, 0.35)]);
+        }
+        m.mark_contact(0.5);
+        // 10 s turning to and fro on the spot (a stall loop's time scale): the seen cell fades
+        // out (half-life 4 s), the contact stays (15 s: 4 → 2.5)
+        for k in 0..100 {
+            let omega = if k % 20 < 10 { 0.5 } else { -0.5 };
+            step(&mut m, BodyVelocity { v: 0.0, omega }, 0.1, &[]);
+        }
+        let left = m.occupied();
+        assert!(!left.is_empty() && left.iter().all(|[f, _]| *f < 0.35), "only the contact arc: {left:?}");
+        // driving 1.5 m on (half-life 1 m), it is forgotten
+        for _ in 0..15 {
+            step(&mut m, BodyVelocity { v: -1.0, omega: 0.0 }, 0.1, &[]);
+        }
+        assert!(m.occupied().is_empty(), "{:?}", m.occupied());
+    }
+
+    #[test]
     fn nothing_is_taken_in_while_creeping_or_turning_fast() {
         let mut m = ObstacleMemory::new(MemoryParams::default(), 0.47, 0.4);
         let creep = BodyVelocity { v: 0.05, omega: 0.0 }; // 5 mm in 0.1 s < 6 mm
@@ -517,12 +578,18 @@ mod tests {
         assert!(m.occupied().is_empty());
     }
 
+    /// The distance [`ObstacleMemory::threat_within`] reports for a cell `along`, `across` of
+    /// the path of [`memory`] (path 0.38 m, side band 0.3 m).
+    fn faded(along: f64, across: f64) -> f64 {
+        let band = 0.3 * (1.0 - along / SIDE_REACH_M);
+        along.hypot(across) - 0.18 + SIDE_FADE_M * (across.abs() - 0.38).max(0.0) / band
+    }
+
     #[test]
-    fn in_path_wins_over_nearer_beside_and_walls_aside_are_ignored() {
-        // a corridor wall 1 m to the left, a box 0.45 m right of the heading at 0.8 m (outside
-        // the path's 0.18 + 0.2 m, inside its side band of 0.18 + 0.3 m), and a box in the path
-        // at 1.5 m
-        let frame = [pt(0.5, 1.0), pt(1.0, 1.0), pt(0.8, -0.45), pt(1.5, 0.1)];
+    fn beside_the_path_counts_farther_away_and_walls_aside_are_ignored() {
+        // a corridor wall 1 m to the left, a box 0.45 m right of the heading at 0.45 m (outside
+        // the path's 0.18 + 0.2 m, inside the side band), and a box in the path at 1.55 m
+        let frame = [pt(0.5, 1.0), pt(1.0, 1.0), pt(0.4, -0.45), pt(1.5, 0.1)];
         let run = |points: &[SurfacePoint]| {
             let mut m = memory();
             for _ in 0..3 {
@@ -530,13 +597,48 @@ mod tests {
             }
             m.threat()
         };
+        // the box beside counts 0.07 m beyond the path, 3 m × 0.07 / 0.19 farther than it is, so
+        // the box in the path, farther away but in the way, is the threat
+        let beside = faded(0.45, -0.45);
+        assert!(beside > 1.55f64.hypot(0.15) - 0.18 && beside < 2.0, "{beside}");
         let o = run(&frame);
         assert!((o.bearing_rad.unwrap() - 0.15f64.atan2(1.55)).abs() < 1e-9, "the in-path box: {o:?}");
-        // without the in-path box: the one beside the path, to the right
+        assert!((o.distance_m.unwrap() - (1.55f64.hypot(0.15) - 0.18)).abs() < 1e-9, "{o:?}");
+        // without the in-path box: the one beside the path, to the right, at its faded distance
         let o = run(&frame[..3]);
-        assert!(o.bearing_rad.unwrap() < 0.0 && o.distance_m.unwrap() < 0.8, "{o:?}");
+        assert!(o.bearing_rad.unwrap() < 0.0 && (o.distance_m.unwrap() - beside).abs() < 1e-9, "{o:?}");
         // the wall alone is no threat
         assert!(!run(&frame[..2]).present);
+        // nor is the box beside the path when it is 1.2 m ahead, where the band has narrowed to
+        // nothing
+        assert!(!run(&[pt(1.2, -0.45)]).present);
+    }
+
+    #[test]
+    fn a_cell_leaving_the_path_fades_out_of_the_threat() {
+        // one cell 0.55 m ahead, seen from headings that put it ever farther to the side: the
+        // threat's distance grows without a jump at the path's edge (0.38 m) or anywhere after
+        let mut m = memory();
+        for _ in 0..4 {
+            step(&mut m, STILL, 0.1, &[pt(0.5, 0.0)]);
+        }
+        let (f0, l0) = (0.55f64, 0.05f64);
+        let mut last: Option<f64> = None;
+        let mut yaw = 0.0;
+        while yaw < 1.2 {
+            let o = m.threat();
+            let (r, b) = (f0.hypot(l0), l0.atan2(f0) - yaw);
+            let (along, across) = (r * b.cos(), (r * b.sin()).abs());
+            let d = o.distance_m.unwrap_or_else(|| panic!("still ahead in the band at {along:.3}, {across:.3}"));
+            assert!((d - faded(along, across)).abs() < 1e-9, "{d} at {along:.3}, {across:.3}");
+            if let Some(prev) = last {
+                assert!((d - prev).abs() < 0.6, "no jump at {across:.3} m beside: {prev} → {d}");
+            }
+            last = Some(d);
+            step(&mut m, BodyVelocity { v: 0.0, omega: 0.4 }, 0.1, &[]);
+            yaw += 0.04;
+        }
+        assert!(last.is_some_and(|d| d > 1.5), "faded to far: {last:?}");
     }
 
     #[test]
