@@ -20,8 +20,8 @@
 //!
 //! The obstacle handed to MOFIS is the most threatening occupied cell ahead of the robot's
 //! origin: the nearest one in its path (within `robot_radius_m + path_margin_m` of the heading
-//! line), or just beside it (within `side_margin_m` more), reported farther away the farther
-//! beyond the path it lies ([`ObstacleMemory::threat_within`]), with its bearing from the
+//! line), or just beside it (in a band `side_margin_m` wide that narrows ahead), reported
+//! farther away the farther beyond the path it lies ([`ObstacleMemory::threat_within`]), with its bearing from the
 //! robot's origin. Walls and boxes alike: a wall the robot drives at is in
 //! its path, a corridor wall beside it is not.
 //!
@@ -60,9 +60,10 @@ pub struct MemoryParams {
     pub robot_radius_m: f64,
     /// Clearance kept to either side of the robot's path, m.
     pub path_margin_m: f64,
-    /// Occupied cells up to this far beyond the path are a threat too, reported farther away
-    /// the farther beyond (by [`SIDE_FADE_M`] at this edge), m: the threat fades instead of
-    /// switching off when a cell leaves the path.
+    /// Width of the side band beyond the path, beside the robot (it narrows to nothing
+    /// [`SIDE_REACH_M`] ahead), m: occupied cells in it are a threat too, reported farther away
+    /// the farther into it (by [`SIDE_FADE_M`] at its outer edge), so the threat fades instead
+    /// of switching off when a cell leaves the path. 0: the path alone.
     pub side_margin_m: f64,
     /// Cells behind the robot's origin by more than this are ignored for the threat, m.
     pub behind_m: f64,
