@@ -163,6 +163,14 @@ mod tests {
         ClassFilter::new(TemporalParams::default())
     }
 
+    /// `n` frames of driving straight on, each pair with the same evidence.
+    fn drive(f: &mut ClassFilter, n: usize, shape: TpoShape, m: f64) {
+        for _ in 0..n {
+            f.advance(FRAME);
+            f.push(&evidence(shape, m, 0.0));
+        }
+    }
+
     #[test]
     fn one_step_is_the_single_pair_decision() {
         let mut f = filter();
@@ -195,10 +203,7 @@ mod tests {
     #[test]
     fn lasting_evidence_takes_over_within_the_window() {
         let mut f = filter();
-        for _ in 0..8 {
-            f.advance(FRAME);
-            f.push(&evidence(TpoShape::Corridor, 0.9, 0.0));
-        }
+        drive(&mut f, 8, TpoShape::Corridor, 0.9);
         // the robot reaches the corridor's end wall: consistent new evidence wins in a few steps
         let steps = (1..=8)
             .find(|_| {
@@ -212,10 +217,7 @@ mod tests {
     #[test]
     fn a_new_scene_after_a_turn_is_not_held_back_by_stale_evidence() {
         let mut f = filter();
-        for _ in 0..8 {
-            f.advance(FRAME);
-            f.push(&evidence(TpoShape::Corridor, 1.0, 0.0));
-        }
+        drive(&mut f, 8, TpoShape::Corridor, 1.0);
         // turning on the spot at 1 rad/s for 0.3 s: the corridor's memberships are forgotten
         for _ in 0..9 {
             f.advance(Motion { yaw_rad: 1.0 / 30.0, dt: 1.0 / 30.0 });
@@ -247,10 +249,7 @@ mod tests {
     #[test]
     fn the_window_is_bounded_and_recent_steps_weigh_more() {
         let mut f = ClassFilter::new(TemporalParams { window: 3, ..TemporalParams::default() });
-        for _ in 0..10 {
-            f.advance(FRAME);
-            f.push(&evidence(TpoShape::Wall, 1.0, 0.0));
-        }
+        drive(&mut f, 10, TpoShape::Wall, 1.0);
         assert_eq!(f.len(), 3);
         // two old wall steps (weights 0.8², 0.8) against one new corner step (weight 1) ...
         f.advance(FRAME);

@@ -495,8 +495,10 @@ pub async fn run(
         if tracing::enabled!(target: "flownav::sim::cells", tracing::Level::TRACE) {
             // the obstacle memory's occupied cells and this step's surface points within 1.5 m,
             // placed in the world with the true pose (to compare with the world's obstacles)
-            let (s, c) = pose.yaw.sin_cos();
-            let world = |[f, l]: [f64; 2]| format!("({:.2},{:.2})", pose.x + c * f - s * l, pose.y + s * f + c * l);
+            let world = |p: [f64; 2]| {
+                let [x, y] = pose.transform(p);
+                format!("({x:.2},{y:.2})")
+            };
             let near = |p: &[f64; 2]| p[0].hypot(p[1]) <= 1.5;
             let cells: Vec<String> = pipeline.memory().occupied().into_iter().filter(near).map(world).collect();
             let pts: Vec<String> =
