@@ -589,7 +589,19 @@ impl GpuFlow {
         if let Some(e) = ctx.take_error() {
             return Err(gpu_err(format!("the GPU flow computation failed: {e}")));
         }
-        match job.mapped.try_recv() {
+        // the read-back's callback fires in a poll once its submission is done; the wait above
+        // can return before that poll ran it (seen on lavapipe under load), so wait for
+        // everything once more before calling it missing
+        let mapped = match job.mapped.try_recv() {
+            Err(mpsc::TryRecvError::Empty) => {
+                ctx.device
+                    .poll(wgpu::PollType::Wait { submission_index: None, timeout: None })
+                    .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
+                job.mapped.try_recv()
+            }
+            r => r,
+        };
+        match mapped {
             Ok(Ok(())) => {}
             Ok(Err(e)) => return Err(gpu_err(format!("reading the flow results back: {e}"))),
             Err(_) => return Err(gpu_err("the GPU did not deliver the flow results")),
