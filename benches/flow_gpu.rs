@@ -3,9 +3,11 @@
 //! (5, −3) px. Two grids: the default (16×16 blocks of 32 px, radius 16) and dense mode
 //! (`stride = 8`: 88×160 blocks of 32 px, radius 16).
 //!
-//! GPU timings include upload, preprocessing and readback (`compute`, waits for its result);
-//! `gpu_stream` uses `compute_pipelined` on a video-like stream (frame A = previous frame B, not
-//! re-uploaded; the result of pair n is read while pair n+1 runs).
+//! GPU timings include upload, preprocessing and readback. `gpu` calls `compute` (waits for its
+//! result) with both frames new each time; `gpu_stream_wait` calls `compute` on a video-like
+//! stream (frame A = previous frame B, kept on the GPU: one upload and one prefilter per pair),
+//! as `run` does; `gpu_stream` uses `compute_pipelined` on that stream (the result of pair n is
+//! read while pair n+1 runs, one pair of latency).
 //!
 //! `cargo bench --bench flow_gpu` — the GPU is the first adapter wgpu finds (hardware first;
 //! `WGPU_BACKEND=vulkan|metal|dx12|gl` to choose). On a software adapter (lavapipe/llvmpipe)
@@ -73,9 +75,18 @@ fn bench(c: &mut Criterion) {
         g.bench_function(format!("gpu/{name}"), |bch| {
             bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
         });
-        // A stream alternating a, b, a, b: each pair's A is the previous pair's B.
+        // A stream alternating a, b, a, b: each pair's A is the previous pair's B, so only B is
+        // uploaded and preprocessed. `compute` waits for its own result (what `run` does);
+        // `compute_pipelined` returns the previous pair's.
         let frames = [&a, &b];
         let mut i = 0usize;
+        g.bench_function(format!("gpu_stream_wait/{name}"), |bch| {
+            bch.iter(|| {
+                let (fa, fb) = (frames[i % 2], frames[(i + 1) % 2]);
+                i += 1;
+                black_box(engine.compute(fa, fb).unwrap().valid_count())
+            })
+        });
         g.bench_function(format!("gpu_stream/{name}"), |bch| {
             bch.iter(|| {
                 let (fa, fb) = (frames[i % 2], frames[(i + 1) % 2]);

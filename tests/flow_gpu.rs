@@ -264,13 +264,25 @@ fn every_adapter_backend_agrees() {
     let (a, b) = pair(128, 96, 61, -3.2, 2.7, true);
     let params = FlowParams { pyramid_levels: 2, ..small(3, 4, 16, 3) };
     let cpu = CpuFlow::new(params.clone()).unwrap().compute(&a, &b).unwrap().clone();
+    // An adapter may be listed and yet refuse a device (on a headless NVIDIA server the GL one
+    // does: "Parent device is lost"); that is the driver's, and is reported. Every adapter that
+    // opens must agree, and at least one must open.
+    let mut agreed = 0;
     for adapter in &adapters {
         let name = gpu::describe_adapter(&adapter.get_info());
+        let ctx = match GpuContext::new(adapter) {
+            Ok(ctx) => Arc::new(ctx),
+            Err(e) => {
+                eprintln!("adapter {name}: no device ({e}), not compared");
+                continue;
+            }
+        };
         eprintln!("adapter {name}");
-        let ctx = Arc::new(GpuContext::new(adapter).unwrap_or_else(|e| panic!("{name}: {e}")));
         let mut g = GpuFlow::new(ctx, params.clone()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_same(g.compute(&a, &b).unwrap_or_else(|e| panic!("{name}: {e}")), &cpu, &name);
+        agreed += 1;
     }
+    assert!(agreed > 0, "none of {} adapters opened a device", adapters.len());
 }
 
 #[test]

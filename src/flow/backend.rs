@@ -67,7 +67,8 @@ fn cpu_fallback(params: &FlowParams, reason: String) -> Result<(Box<dyn FlowEngi
 fn auto(params: &FlowParams) -> Result<(Box<dyn FlowEngine>, BackendReport), FlowError> {
     let instance = gpu::instance();
     let list = gpu::adapters(&instance);
-    let Some(adapter) = list.iter().find(|a| gpu::is_hardware(&a.get_info())) else {
+    let hardware: Vec<&wgpu::Adapter> = list.iter().filter(|a| gpu::is_hardware(&a.get_info())).collect();
+    if hardware.is_empty() {
         let reason = if list.is_empty() {
             "auto: no GPU adapter found".to_string()
         } else {
@@ -75,20 +76,18 @@ fn auto(params: &FlowParams) -> Result<(Box<dyn FlowEngine>, BackendReport), Flo
             format!("auto: only software adapters found ({}), slower than the CPU engine", names.join("; "))
         };
         return cpu_fallback(params, reason);
-    };
-    let info = adapter.get_info();
-    let built = GpuContext::new(adapter).and_then(|ctx| GpuFlow::new(Arc::new(ctx), params.clone()));
+    }
+    let built = GpuContext::first_that_opens(hardware).and_then(|ctx| {
+        let name = gpu::describe_adapter(ctx.info());
+        GpuFlow::new(Arc::new(ctx), params.clone()).map(|engine| (engine, name))
+    });
     match built {
-        Ok(engine) => Ok((
+        Ok((engine, name)) => Ok((
             Box::new(engine),
-            BackendReport {
-                engine: "gpu",
-                adapter: Some(gpu::describe_adapter(&info)),
-                reason: "auto: hardware adapter found".into(),
-            },
+            BackendReport { engine: "gpu", adapter: Some(name), reason: "auto: hardware adapter found".into() },
         )),
         Err(e) => {
-            tracing::warn!("GPU {} failed to initialise ({e}); using the CPU engine", gpu::describe_adapter(&info));
+            tracing::warn!("the GPU failed to initialise ({e}); using the CPU engine");
             cpu_fallback(params, format!("auto: the GPU failed to initialise: {e}"))
         }
     }

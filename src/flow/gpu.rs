@@ -117,12 +117,31 @@ impl GpuContext {
         Ok(Self { info, device, queue, error })
     }
 
-    /// The first adapter found (hardware preferred), opened. Used by tests and `--flow-backend gpu`.
+    /// The first adapter that opens (hardware preferred). Used by tests and `--flow-backend gpu`.
+    /// An adapter can be listed and still fail to open (on a headless NVIDIA server the GL
+    /// adapter does, with "Parent device is lost"), so each is tried in turn.
     pub fn any() -> Result<Self, FlowError> {
         let inst = instance();
         let list = adapters(&inst);
-        let adapter = list.first().ok_or_else(no_adapter_error)?;
-        Self::new(adapter)
+        if list.is_empty() {
+            return Err(no_adapter_error());
+        }
+        Self::first_that_opens(&list)
+    }
+
+    /// The first of `list` on which a device opens; the error names every failure.
+    pub fn first_that_opens<'a>(list: impl IntoIterator<Item = &'a wgpu::Adapter>) -> Result<Self, FlowError> {
+        let mut failures = Vec::new();
+        for adapter in list {
+            match Self::new(adapter) {
+                Ok(ctx) => return Ok(ctx),
+                Err(e) => {
+                    tracing::warn!("{e}; trying the next adapter");
+                    failures.push(e.to_string());
+                }
+            }
+        }
+        Err(FlowError::BackendUnavailable("gpu", format!("no adapter could be opened: {}", failures.join("; "))))
     }
 
     pub fn info(&self) -> &wgpu::AdapterInfo {
