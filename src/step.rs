@@ -135,6 +135,8 @@ pub struct StepOutput {
     /// beside the robot's path, remembered over frames), not this frame's OFFIS obstacle.
     pub avoided: Obstacle,
     pub goal: Goal,
+    /// `goal` after steering around remembered obstacles: what MOFIS was given.
+    pub steered: Goal,
     pub mofis: MofisOutput,
 }
 
@@ -374,7 +376,7 @@ impl Pipeline {
         let view = Perception { obstacle: avoided, ..perception.clone() };
         let mofis = self.mofis.step_with_front(&view, Some(front.max(0.0)), &steered, frame_dt)?;
         self.last_setpoint = mofis.setpoint;
-        Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, mofis }))
+        Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, steered, mofis }))
     }
 
     fn calib_for(&mut self, frame: &Frame) -> Calibration {
