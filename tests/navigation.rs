@@ -173,6 +173,40 @@ fn the_plan_says_how_far_ahead_it_stops_the_robot() {
 }
 
 #[test]
+fn the_corridor_lane_comes_from_the_map_width_and_dead_reckoning() {
+    let map = office();
+    let mut nav = mission(&map, "R9:D2");
+    let none = Perception::default();
+    assert_eq!(nav.lane(), None, "leaving the room: the doorway leg has no lane");
+    let forward = BodyVelocity::new(0.2, 0.0);
+    while nav.progress().leg < 2 {
+        nav.step(&none, forward, 0.1);
+    }
+    let left = BodyVelocity::new(0.0, 0.5);
+    while nav.progress().leg < 3 {
+        nav.step(&none, left, 0.02);
+    }
+    // on the centre line (y = 0) at x = 21 facing west along the 2 m corridor (width_m = 2.0)
+    let lane = nav.lane().expect("the corridor leg has the map's width");
+    assert!((lane.half_width_m - 1.0).abs() < 1e-12, "{lane:?}");
+    // (the turn on the spot ends within its tolerance of the leg's heading)
+    assert!(lane.left_m.abs() < 0.02 && lane.angle_rad.abs() < 0.06, "{lane:?}");
+    let a0 = lane.angle_rad;
+    // drift 0.3 m toward the south wall (the robot's left when facing west) and turn 0.2 rad
+    // further left: the lane says so in the robot's frame
+    let start = nav.position_m().unwrap();
+    use std::f64::consts::FRAC_PI_2;
+    nav.step(&none, BodyVelocity::new(0.0, FRAC_PI_2 / 0.5), 0.5);
+    nav.step(&none, BodyVelocity::new(0.3, 0.0), 1.0);
+    nav.step(&none, BodyVelocity::new(0.0, (0.2 - FRAC_PI_2) / 0.5), 0.5);
+    let [x, y] = nav.position_m().unwrap();
+    assert!((y - (start[1] - 0.3)).abs() < 0.02 && (x - start[0]).abs() < 0.02, "{x} {y}");
+    let lane = nav.lane().unwrap();
+    assert!((lane.left_m - 0.3).abs() < 0.02, "{lane:?}");
+    assert!((lane.angle_rad - (a0 - 0.2)).abs() < 1e-9, "{lane:?}");
+}
+
+#[test]
 fn doors_seen_obliquely_do_not_relocalise() {
     let map = office();
     let mut nav = mission(&map, "R9:D2");

@@ -29,6 +29,7 @@
 //! outputs in the same order (replay is bit-exact).
 
 use crate::offis::points::SurfacePoint;
+use crate::pafsis::Lane;
 use crate::perception::Obstacle;
 use hal::BodyVelocity;
 use serde::{Deserialize, Serialize};
@@ -67,6 +68,9 @@ pub struct MemoryParams {
     pub side_margin_m: f64,
     /// Cells behind the robot's origin by more than this are ignored for the threat, m.
     pub behind_m: f64,
+    /// Clearance kept to the corridor's walls as the map gives them ([`crate::pafsis::Lane`]),
+    /// m: less than `path_margin_m`, since the dead-reckoned position drifts.
+    pub lane_margin_m: f64,
     /// Points are taken in only when the robot travelled at least this far forward over the
     /// frame interval, m: with less, the flow of anything but the nearest surfaces is below the
     /// matching noise, and a noise vector reads as a surface close by.
@@ -104,6 +108,7 @@ impl Default for MemoryParams {
             path_margin_m: 0.2,
             side_margin_m: 0.15,
             behind_m: 0.0,
+            lane_margin_m: 0.1,
             min_travel_m: 0.006,
             min_range_m: 0.22,
             min_radial_px: 0.8,
@@ -132,6 +137,7 @@ impl MemoryParams {
             ("path_margin_m", nonneg(self.path_margin_m), "must be a distance ≥ 0 in m"),
             ("side_margin_m", nonneg(self.side_margin_m), "must be a distance ≥ 0 in m"),
             ("behind_m", nonneg(self.behind_m), "must be a distance ≥ 0 in m"),
+            ("lane_margin_m", nonneg(self.lane_margin_m), "must be a distance ≥ 0 in m"),
             ("min_travel_m", nonneg(self.min_travel_m), "must be a distance ≥ 0 in m"),
             ("min_radial_px", nonneg(self.min_radial_px), "must be ≥ 0 pixels"),
             ("max_tangential", pos(self.max_tangential), "must be a positive fraction"),
@@ -402,20 +408,41 @@ impl ObstacleMemory {
         free
     }
 
+    /// How far the robot can drive along `heading` (rad, robot frame) before its footprint,
+    /// widened by `lane_margin_m`, leaves `lane` going outward, up to `lookahead_m`. A robot
+    /// already outside is free to drive back in.
+    pub fn lane_free_distance(&self, lane: &Lane, heading: f64, lookahead_m: f64) -> f64 {
+        let band = (lane.half_width_m - self.params.robot_radius_m - self.params.lane_margin_m).max(0.0);
+        let rate = (heading - lane.angle_rad).sin();
+        let exit = match rate {
+            r if r > 1e-9 => (band - lane.left_m) / r,
+            r if r < -1e-9 => (band + lane.left_m) / -r,
+            _ => f64::INFINITY,
+        };
+        exit.clamp(0.0, lookahead_m)
+    }
+
     /// The heading to drive instead of `goal_rad` (both rad, robot frame): `goal_rad` itself when
     /// its path is free for `lookahead_m`, else the candidate within `±max_rad` (steps of
     /// `step_rad`) nearest to the goal whose path is free that far, else the candidate with the
     /// longest free path (nearest to the goal on a tie). A vector-field-histogram-style
-    /// choice of gap; MOFIS still slows and swerves for what is close.
-    pub fn steer(&self, goal_rad: f64, lookahead_m: f64, max_rad: f64, step_rad: f64) -> f64 {
-        if self.free_distance(goal_rad, lookahead_m) >= lookahead_m {
+    /// choice of gap; MOFIS still slows and swerves for what is close. With a `lane` (the
+    /// corridor from the map), a path is free only as far as it stays inside it
+    /// ([`lane_free_distance`](Self::lane_free_distance)): a doorway, or a wall not yet seen,
+    /// is no gap to steer through.
+    pub fn steer(&self, goal_rad: f64, lookahead_m: f64, max_rad: f64, step_rad: f64, lane: Option<&Lane>) -> f64 {
+        let free_distance = |h: f64| {
+            let seen = self.free_distance(h, lookahead_m);
+            lane.map_or(seen, |l| seen.min(self.lane_free_distance(l, h, lookahead_m)))
+        };
+        if free_distance(goal_rad) >= lookahead_m {
             return goal_rad;
         }
         let n = (max_rad / step_rad).round() as i32;
         let mut best: Option<(bool, f64, f64)> = None; // (free enough, free distance, heading)
         for k in -n..=n {
             let h = k as f64 * step_rad;
-            let free = self.free_distance(h, lookahead_m);
+            let free = free_distance(h);
             let ok = free >= lookahead_m;
             let better = match best {
                 None => true,
@@ -664,11 +691,52 @@ mod tests {
             step(&mut m, STILL, 0.1, &bx);
         }
         assert!((m.free_distance(0.0, 1.5) - 1.05).abs() < 1e-9, "the box's cells start at 1.0 m");
-        let h = m.steer(0.0, 1.5, 0.7, 0.05);
+        let h = m.steer(0.0, 1.5, 0.7, 0.05, None);
         assert!(h > 0.0, "pass on the left, the short way round: {h}");
         assert!(m.free_distance(h, 1.5) >= 1.5);
         // a free goal direction is kept
-        assert_eq!(m.steer(0.6, 1.5, 0.7, 0.05), 0.6);
+        assert_eq!(m.steer(0.6, 1.5, 0.7, 0.05, None), 0.6);
+    }
+
+    #[test]
+    fn the_lane_bounds_how_far_a_heading_is_free() {
+        let m = memory();
+        // a 2 m corridor, the robot 0.3 m left of its centre line and parallel to it: the
+        // footprint (0.18) plus the lane margin (0.1) may come to 0.72 m off the line
+        let lane = Lane { left_m: 0.3, angle_rad: 0.0, half_width_m: 1.0 };
+        assert_eq!(m.lane_free_distance(&lane, 0.0, 1.5), 1.5, "along the corridor");
+        let h = 0.5f64;
+        let d = m.lane_free_distance(&lane, h, 5.0);
+        assert!((d - (0.72 - 0.3) / h.sin()).abs() < 1e-9, "out to the left wall: {d}");
+        let d = m.lane_free_distance(&lane, -h, 5.0);
+        assert!((d - (0.72 + 0.3) / h.sin()).abs() < 1e-9, "across to the right wall: {d}");
+        // outside the band: driving further out is blocked at once, driving back in is free
+        let out = Lane { left_m: 0.9, ..lane };
+        assert_eq!(m.lane_free_distance(&out, 0.2, 1.5), 0.0);
+        assert_eq!(m.lane_free_distance(&out, -0.2, 1.5), 1.5);
+        // the robot turned 0.4 rad left of the corridor: its own heading leaves the lane
+        let turned = Lane { left_m: 0.0, angle_rad: -0.4, half_width_m: 1.0 };
+        let d = m.lane_free_distance(&turned, 0.0, 5.0);
+        assert!((d - 0.72 / 0.4f64.sin()).abs() < 1e-9, "{d}");
+    }
+
+    #[test]
+    fn steering_keeps_inside_the_corridor_from_the_map() {
+        let mut m = memory();
+        // a box 1 m ahead from 0.25 m right to 0.15 m left of the heading; the robot 0.4 m left
+        // of the centre line of a 2 m corridor. Seen alone, the short way round is left (where
+        // a doorway, or a wall not yet seen, reads free); inside the corridor only the right
+        // gap is wide enough
+        let bx: Vec<SurfacePoint> = (0..5).map(|k| pt(1.0, 0.15 - 0.1 * k as f64)).collect();
+        for _ in 0..3 {
+            step(&mut m, STILL, 0.1, &bx);
+        }
+        let free = m.steer(0.0, 1.5, 0.7, 0.05, None);
+        assert!(free > 0.0, "without the lane: left, through the door: {free}");
+        let lane = Lane { left_m: 0.4, angle_rad: 0.0, half_width_m: 1.0 };
+        let h = m.steer(0.0, 1.5, 0.7, 0.05, Some(&lane));
+        assert!(h < 0.0, "with the lane: right, the way inside the corridor: {h}");
+        assert!(m.free_distance(h, 1.5) >= 1.5 && m.lane_free_distance(&lane, h, 1.5) >= 1.5, "{h}");
     }
 
     #[test]

@@ -84,6 +84,8 @@ pub struct Leg {
     /// A metric line the leg follows (a point and the heading), when the map has positions;
     /// used only with a pose hint.
     pub line_point_m: Option<[f64; 2]>,
+    /// Width of the corridor around that line, m, when the map gives it (corridor legs).
+    pub lane_width_m: Option<f64>,
 }
 
 impl fmt::Display for Leg {
@@ -133,12 +135,19 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                 heading_rad: edge_heading,
                 leads_to: edge.to.clone(),
                 line_point_m: None,
+                lane_width_m: None,
             });
             turned = true;
         }
         heading = edge_heading;
         for action in &edge.actions {
-            let leg = |kind, heading_rad| Leg { kind, heading_rad, leads_to: edge.to.clone(), line_point_m: point };
+            let leg = |kind, heading_rad| Leg {
+                kind,
+                heading_rad,
+                leads_to: edge.to.clone(),
+                line_point_m: point,
+                lane_width_m: None,
+            };
             match action {
                 Action::ExitRoom { door, length_m }
                 | Action::EnterRoom { door, length_m }
@@ -151,7 +160,7 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                     legs.push(Leg { line_point_m: None, ..leg(LegKind::Turn, heading) });
                     turned = true;
                 }
-                Action::FollowCorridor { length_m, doors_left, doors_right, until } => {
+                Action::FollowCorridor { length_m, doors_left, doors_right, until, width_m } => {
                     let unnamed =
                         |n: u32, side| (0..n).map(move |_| ExpectedDoor { name: None, side: Some(side), at_m: None });
                     let new_doors = unnamed(*doors_left, Side::Left).chain(unnamed(*doors_right, Side::Right));
@@ -173,11 +182,14 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                         }
                         last.leads_to = edge.to.clone();
                         last.line_point_m = point;
+                        // one lane for the merged leg: the narrowest part, and none where a part
+                        // has no width
+                        last.lane_width_m = last.lane_width_m.zip(*width_m).map(|(a, b)| a.min(b));
                     } else {
-                        legs.push(leg(
-                            LegKind::Corridor { length_m: *length_m, doors: new_doors.collect(), end },
-                            heading,
-                        ));
+                        legs.push(Leg {
+                            lane_width_m: *width_m,
+                            ..leg(LegKind::Corridor { length_m: *length_m, doors: new_doors.collect(), end }, heading)
+                        });
                     }
                     turned = false;
                 }
@@ -255,6 +267,19 @@ pub struct PoseHint {
     pub x: f64,
     pub y: f64,
     pub heading_rad: f64,
+}
+
+/// The corridor the robot is in, in the robot's frame, from the map's width and the
+/// dead-reckoned pose: the steering keeps inside it ([`crate::mofis::memory::ObstacleMemory::steer`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Lane {
+    /// How far the robot's origin is left of the corridor's centre line, m.
+    pub left_m: f64,
+    /// Direction of the centre line (the leg's heading) relative to the robot's heading, rad,
+    /// + left.
+    pub angle_rad: f64,
+    /// Half the corridor's width, m.
+    pub half_width_m: f64,
 }
 
 /// Progress along the plan, for display.
@@ -489,6 +514,23 @@ impl Pafsis {
             _ => None,
         };
         self.command(perception, hint.or(dead_reckoned))
+    }
+
+    /// The corridor lane of the current leg, where the map gives the corridor's width and the
+    /// start place a position (so that the dead-reckoned position is in the map frame); `None`
+    /// otherwise, and when no leg is active.
+    pub fn lane(&self) -> Option<Lane> {
+        if self.status != GoalStatus::Active {
+            return None;
+        }
+        let leg = self.legs.get(self.leg)?;
+        let (width, [px, py], [x, y]) = (leg.lane_width_m?, leg.line_point_m?, self.position_m?);
+        let (s, c) = leg.heading_rad.sin_cos();
+        Some(Lane {
+            left_m: -(x - px) * s + (y - py) * c,
+            angle_rad: wrap_angle(leg.heading_rad - self.heading_rad),
+            half_width_m: 0.5 * width,
+        })
     }
 
     /// The dead-reckoned position in the map frame, m (module doc of [`PafsisParams`]'s

@@ -99,6 +99,11 @@ pub enum Action {
         doors_right: u32,
         #[serde(default)]
         until: Until,
+        /// The corridor's width wall to wall, m, where the map knows it: the robot keeps
+        /// inside it while it steers around obstacles (an open door or a wall it has not seen
+        /// does not read as a way out); absent, only what the camera saw bounds the steering.
+        #[serde(default)]
+        width_m: Option<f64>,
     },
     /// Stop in front of door `door`, which is on `side`: ends a `follow_corridor`.
     StopAtDoor { door: String, side: Side },
@@ -136,8 +141,11 @@ impl fmt::Display for Action {
             Action::EnterRoom { door, length_m } => write!(f, "enter the room through {door} ({length_m} m)"),
             Action::GoThroughDoor { door, length_m } => write!(f, "go through door {door} ({length_m} m)"),
             Action::Turn { side, angle_deg } => write!(f, "turn {} {angle_deg}°", side.name()),
-            Action::FollowCorridor { length_m, doors_left, doors_right, until } => {
+            Action::FollowCorridor { length_m, doors_left, doors_right, until, width_m } => {
                 write!(f, "follow the corridor {length_m} m passing {doors_left} doors left, {doors_right} right")?;
+                if let Some(w) = width_m {
+                    write!(f, " ({w} m wide)")?;
+                }
                 match until {
                     Until::Distance => Ok(()),
                     Until::Corner => write!(f, " until the corner"),
@@ -337,7 +345,15 @@ fn check_action(
                 Err(format!("angle_deg must be in (0, 180], not {angle_deg}"))
             }
         }
-        Action::FollowCorridor { length_m, .. } => length_check(*length_m),
+        Action::FollowCorridor { length_m, width_m, .. } => {
+            length_check(*length_m)?;
+            match width_m {
+                Some(w) if !(w.is_finite() && *w > 0.0) => {
+                    Err(format!("width_m must be a positive finite width, not {w}"))
+                }
+                _ => Ok(()),
+            }
+        }
         Action::StopAtDoor { door, .. } => {
             door_check(door)?;
             match k.checked_sub(1).map(|j| &actions[j]) {
@@ -403,6 +419,15 @@ mod tests {
 
         let e = err(&TINY.replace("length_m = 2.0", "length_m = -2.0"));
         assert!(e.contains("length_m must be a positive"), "{e}");
+
+        let narrow = TINY.replace(
+            r#"{ do = "exit_room", door = "D1", length_m = 2.0 }"#,
+            r#"{ do = "follow_corridor", length_m = 2.0, width_m = 0.0 }"#,
+        );
+        let e = err(&narrow);
+        assert!(e.contains("action 1") && e.contains("width_m must be a positive"), "{e}");
+        let wide = narrow.replace("width_m = 0.0", "width_m = 2.0");
+        assert!(TopoMap::parse(&wide, "ok.toml").is_ok());
 
         let e = err(&TINY.replace("side = \"left\"", "side = \"up\""));
         assert!(e.contains("bad.toml") && e.contains("up"), "{e}");
