@@ -377,30 +377,6 @@ mod mofis {
     }
 
     #[test]
-    fn a_goal_far_off_is_turned_to_on_the_spot_until_nearly_ahead_whatever_is_beside() {
-        // something 1.4 m away, 0.25 rad left, that avoidance would turn right from
-        let beside = obstacle(1.4, 0.25);
-        let mut m = mofis();
-        let driving = m.step(&beside, &goal(0.3, 0.4), SETTLED).unwrap();
-        assert!(driving.weight > 0.5 && driving.setpoint.v > 0.0, "0.4 rad off, driving: {driving:?}");
-        let mut m = mofis();
-        // 0.7 rad off (beyond blind_turn_stop_rad 0.6): on the spot, toward the goal alone
-        let out = m.step(&beside, &goal(0.3, 0.7), SETTLED).unwrap();
-        assert_eq!(out.weight, 0.0);
-        assert!(out.setpoint.v == 0.0 && out.setpoint.omega > 0.9, "{out:?}");
-        // the turn goes on (no avoidance, no speed) while the goal is more than
-        // blind_turn_start_rad (0.2) off, where the same goal had the robot driving before
-        for angle in [0.5, 0.4, 0.25] {
-            let out = m.step(&beside, &goal(0.3, angle), SETTLED).unwrap();
-            assert!(out.weight == 0.0 && out.setpoint.v == 0.0, "{angle}: {out:?}");
-            assert!((out.setpoint.omega - 1.5 * angle).abs() < 1e-9, "{angle}: {out:?}");
-        }
-        // nearly ahead: drive, with avoidance back in the fusion
-        let out = m.step(&beside, &goal(0.3, 0.15), SETTLED).unwrap();
-        assert!(out.setpoint.v > 0.0 && out.weight > 0.0, "{out:?}");
-    }
-
-    #[test]
     fn bad_perception_values_do_not_panic() {
         let mut m = mofis();
         let mut p = obstacle(f64::NAN, f64::INFINITY);

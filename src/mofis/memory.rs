@@ -43,12 +43,8 @@ pub struct MemoryParams {
     pub cell_m: f64,
     /// Evidence half-life of a cell in the camera's view, s.
     pub half_life_view_s: f64,
-    /// Evidence half-life of a cell out of view (beside or behind the robot), s ...
+    /// Evidence half-life of a cell out of view (beside or behind the robot), s.
     pub half_life_aside_s: f64,
-    /// ... and per distance driven, m: what the robot saw stays where it was while the robot
-    /// turns on the spot or creeps, and it is the distance driven (odometry drift, the view
-    /// changing) that makes a remembered cell stale.
-    pub half_life_aside_m: f64,
     /// Evidence half-life of a cell marked by a contact, per distance driven, m ...
     pub contact_half_life_m: f64,
     /// ... and over time, s: what the robot touched is certain, unlike a flow point, and the
@@ -103,7 +99,6 @@ impl Default for MemoryParams {
             cell_m: 0.1,
             half_life_view_s: 0.5,
             half_life_aside_s: 4.0,
-            half_life_aside_m: 1000.0,
             contact_half_life_m: 1.0,
             contact_half_life_s: 15.0,
             occupied: 1.5,
@@ -133,7 +128,6 @@ impl MemoryParams {
             ("cell_m", pos(self.cell_m) && self.cell_m <= 1.0, "must be in (0, 1] m"),
             ("half_life_view_s", pos(self.half_life_view_s), "must be a positive time in s"),
             ("half_life_aside_s", pos(self.half_life_aside_s), "must be a positive time in s"),
-            ("half_life_aside_m", pos(self.half_life_aside_m), "must be a positive distance in m"),
             ("contact_half_life_m", pos(self.contact_half_life_m), "must be a positive distance in m"),
             ("contact_half_life_s", pos(self.contact_half_life_s), "must be a positive time in s"),
             ("occupied", pos(self.occupied), "must be a positive evidence (frames)"),
@@ -260,9 +254,8 @@ impl ObstacleMemory {
             self.pose.y += odo.v * dt * mid.sin();
             self.pose.yaw = crate::pafsis::map::wrap_angle(self.pose.yaw + odo.omega * dt);
             let p = self.params;
+            let (k_view, k_aside) = (0.5f64.powf(dt / p.half_life_view_s), 0.5f64.powf(dt / p.half_life_aside_s));
             let driven = (odo.v * dt).abs();
-            let k_view = 0.5f64.powf(dt / p.half_life_view_s);
-            let k_aside = 0.5f64.powf(dt / p.half_life_aside_s + driven / p.half_life_aside_m);
             let k_contact = 0.5f64.powf(driven / p.contact_half_life_m + dt / p.contact_half_life_s);
             let (half_fov, cell) = (self.half_fov_rad, p.cell_m);
             // what the camera measured along each bearing sector this step

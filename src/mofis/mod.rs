@@ -164,9 +164,6 @@ pub struct Mofis {
     limiter: Limiter,
     /// The side (+1 left, −1 right) chosen to pass the current dead-ahead obstacle.
     pass_side: Option<f64>,
-    /// Turning on the spot toward the goal: entered when the goal is `blind_turn_stop_rad` or
-    /// more off the heading, left once it is within `blind_turn_start_rad`.
-    spot_turn: bool,
 }
 
 impl Mofis {
@@ -242,7 +239,6 @@ impl Mofis {
             fusion_out,
             limiter: Limiter::new(limits),
             pass_side: None,
-            spot_turn: false,
         })
     }
 
@@ -329,22 +325,9 @@ impl Mofis {
             self.fusion_buf[id.0] = v;
         }
         self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
-        // A goal at least `blind_turn_stop_rad` off the heading is turned to on the spot (the
-        // look factor below stops the robot), and the turn goes on until the goal is within
-        // `blind_turn_start_rad`, where the robot drives at full speed again. Without the
-        // hysteresis, a cell that entered the avoidance band as the robot turned toward the goal
-        // turned it back, out of the band, and the goal turned it in again: a stationary limit
-        // cycle that lasted until the mission timed out (seed 16, in front of D9).
-        let off_goal = goal.angle_rad.abs();
-        self.spot_turn = goal.status == GoalStatus::Active
-            && goal.velocity > 0.0
-            && match self.spot_turn {
-                true => off_goal > self.params.blind_turn_start_rad,
-                false => off_goal >= self.params.blind_turn_stop_rad,
-            };
-        // a turn on the spot (goal velocity 0, or a goal far off the heading) cannot run the
-        // round robot into anything: the goal's turn alone
-        let weight = match goal.velocity > 0.0 && !self.spot_turn {
+        // a turn on the spot (goal velocity 0) cannot run the round robot into anything: the
+        // goal's turn alone
+        let weight = match goal.velocity > 0.0 {
             true => self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0),
             false => 0.0,
         };
@@ -357,7 +340,6 @@ impl Mofis {
             // avoidance has nothing to say about it
             let v = match goal.velocity < 0.0 {
                 true => goal.velocity,
-                false if self.spot_turn => 0.0,
                 false => {
                     let off = goal.angle_rad.abs().max(omega.abs() / self.params.heading_gain);
                     goal.velocity * avoidance.speed * self.look_factor(off)
