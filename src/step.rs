@@ -22,7 +22,7 @@ use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
 use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::stall::{Manoeuvre, StallRecovery};
-use crate::mofis::{Mofis, MofisError, MofisOutput};
+use crate::mofis::{Mofis, MofisError, MofisOutput, SpotTurn};
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
@@ -174,6 +174,7 @@ pub struct Pipeline {
     stall: StallRecovery,
     /// The set-point of the previous step (what the odometry of this step should show).
     last_setpoint: BodyVelocity,
+    spot_turn: SpotTurn,
 }
 
 impl Pipeline {
@@ -198,6 +199,7 @@ impl Pipeline {
             mofis_range: cfg.mofis.sensing_range_m,
             stall: StallRecovery::new(cfg.mofis.stall, cfg.control.max_reverse_speed > 0.0),
             last_setpoint: BodyVelocity::ZERO,
+            spot_turn: SpotTurn::new(&cfg.mofis),
             flow,
             backend,
             offis: Offis::new(cfg.offis.clone())?,
@@ -260,6 +262,7 @@ impl Pipeline {
         self.offis.reset_filter();
         self.memory.clear();
         self.stall.reset();
+        self.spot_turn.reset();
         self.last_setpoint = BodyVelocity::ZERO;
         self.mofis.fallback()
     }
@@ -355,6 +358,8 @@ impl Pipeline {
             },
             _ => goal,
         };
+        // a goal far off the heading is turned to on the spot first
+        let goal = self.spot_turn.apply(goal);
         // turns on the spot keep their angle; driving picks a free heading
         let steered = match goal.velocity > 0.0 {
             true => {
