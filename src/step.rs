@@ -366,10 +366,7 @@ impl Pipeline {
                 let centred = goal.angle_rad
                     + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
                 let lookahead = STEER_LOOKAHEAD_M.min(horizon);
-                let lane = match &self.navigator {
-                    Navigator::Mission(pafsis) => pafsis.lane(),
-                    Navigator::Cruise(_) => None,
-                };
+                let lane = self.pafsis().and_then(Pafsis::lane);
                 let angle_rad = self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD, lane.as_ref());
                 Goal { angle_rad, ..goal }
             }

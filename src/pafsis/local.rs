@@ -524,10 +524,9 @@ impl Pafsis {
             return None;
         }
         let leg = self.legs.get(self.leg)?;
-        let (width, [px, py], [x, y]) = (leg.lane_width_m?, leg.line_point_m?, self.position_m?);
-        let (s, c) = leg.heading_rad.sin_cos();
+        let (width, point, position) = (leg.lane_width_m?, leg.line_point_m?, self.position_m?);
         Some(Lane {
-            left_m: -(x - px) * s + (y - py) * c,
+            left_m: left_of_line(position, point, leg.heading_rad),
             angle_rad: wrap_angle(leg.heading_rad - self.heading_rad),
             half_width_m: 0.5 * width,
         })
@@ -742,9 +741,8 @@ impl Pafsis {
         if let (Some(h), Some([px, py]), false) = (hint, leg.line_point_m, matches!(leg.kind, LegKind::Turn) || holding)
         {
             // Signed distance of the robot left of the leg's line; steer back over a lookahead.
-            let (s, c) = leg.heading_rad.sin_cos();
-            let left_of_line = -(h.x - px) * s + (h.y - py) * c;
-            angle = wrap_angle(angle - left_of_line.atan2(self.params.lookahead_m));
+            let left = left_of_line([h.x, h.y], [px, py], leg.heading_rad);
+            angle = wrap_angle(angle - left.atan2(self.params.lookahead_m));
         }
         let (speed, remaining) = match &leg.kind {
             LegKind::Turn => (0.0, 0.0),
@@ -769,6 +767,12 @@ impl Pafsis {
         let velocity = if speed > 0.0 { speed * ramp * angle.cos().max(0.0) } else { 0.0 };
         Goal { velocity, angle_rad: angle, status: self.status }
     }
+}
+
+/// Signed distance of `position` left of the line through `point` with heading `heading_rad`, m.
+fn left_of_line(position: [f64; 2], point: [f64; 2], heading_rad: f64) -> f64 {
+    let (s, c) = heading_rad.sin_cos();
+    -(position[0] - point[0]) * s + (position[1] - point[1]) * c
 }
 
 fn describe_door(d: &ExpectedDoor) -> String {
