@@ -359,13 +359,14 @@ impl Pipeline {
             _ => goal,
         };
         // a goal far off the heading is turned to on the spot first
-        let goal = self.spot_turn.apply(goal);
+        let lookahead = STEER_LOOKAHEAD_M.min(horizon);
+        let goal_way_free = self.memory.free_distance(goal.angle_rad, lookahead) >= lookahead;
+        let goal = self.spot_turn.apply(goal, goal_way_free);
         // turns on the spot keep their angle; driving picks a free heading
         let steered = match goal.velocity > 0.0 {
             true => {
                 let centred = goal.angle_rad
                     + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                let lookahead = STEER_LOOKAHEAD_M.min(horizon);
                 let lane = self.pafsis().and_then(Pafsis::lane);
                 let angle_rad = self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD, lane.as_ref());
                 Goal { angle_rad, ..goal }
