@@ -100,6 +100,7 @@ fn summary_json_starts_with_the_contract_fields() {
         fps: 30.0,
         noise: 2.0,
         pose_hint: false,
+        quality: sim::quality::QualitySummary { points_range_ok: Some(0.8), cells_ghost: None },
     };
     let line = s.to_json_line();
     assert!(
@@ -110,6 +111,7 @@ fn summary_json_starts_with_the_contract_fields() {
     let v: serde_json::Value = serde_json::from_str(&line).unwrap();
     assert_eq!(v["status"], "arrived");
     assert_eq!(v["seed"], 3);
+    assert_eq!((v["points_range_ok"].as_f64(), v["cells_ghost"].is_null()), (Some(0.8), true), "flattened: {line}");
 }
 
 #[test]

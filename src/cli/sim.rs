@@ -94,6 +94,9 @@ pub struct Aggregate {
     pub wall_s: f64,
     pub realtime_factor: f64,
     pub failed_seeds: Vec<u64>,
+    /// Means over the runs of `points_range_ok` and `cells_ghost` (`sim::quality`).
+    pub mean_points_range_ok: Option<f64>,
+    pub mean_cells_ghost: Option<f64>,
 }
 
 impl Aggregate {
@@ -103,6 +106,10 @@ impl Aggregate {
         let sim_s = sum(|r| r.time_s);
         let wall_s = sum(|r| r.wall_s);
         let r3 = |x: f64| (x * 1000.0).round() / 1000.0;
+        let mean_of = |f: fn(&SimSummary) -> Option<f64>| {
+            let v: Vec<f64> = runs.iter().filter_map(f).collect();
+            (!v.is_empty()).then(|| r3(v.iter().sum::<f64>() / v.len() as f64))
+        };
         Self {
             runs: runs.len(),
             reached: runs.iter().filter(|r| r.reached).count(),
@@ -119,6 +126,8 @@ impl Aggregate {
             wall_s: r3(wall_s),
             realtime_factor: r3(sim_s / wall_s.max(1e-9)),
             failed_seeds: runs.iter().filter(|r| !r.reached || r.collisions > 0).map(|r| r.seed).collect(),
+            mean_points_range_ok: mean_of(|r| r.quality.points_range_ok),
+            mean_cells_ghost: mean_of(|r| r.quality.cells_ghost),
         }
     }
 }

@@ -111,7 +111,7 @@ impl Default for MemoryParams {
             lane_margin_m: 0.1,
             min_travel_m: 0.006,
             min_range_m: 0.22,
-            min_radial_px: 0.8,
+            min_radial_px: 1.2,
             max_tangential: 0.5,
             max_turn_rate: 0.3,
             max_turn_change: 0.05,
@@ -224,9 +224,13 @@ impl ObstacleMemory {
         &self.params
     }
 
-    /// Forgets everything (a new mission, a gap in perception longer than the memory is good for).
+    /// Forgets everything (a new mission, a gap in perception longer than the memory is good for),
+    /// and starts a new odometry frame at the robot: a cleared memory then depends on nothing
+    /// before the clear (the cells' grid alignment included), so a replay that resynchronises on
+    /// a fail-safe computes the same cells.
     pub fn clear(&mut self) {
         self.cells.clear();
+        self.pose = Pose::default();
     }
 
     /// Occupied cells, robot frame (forward, left), m: for logging and tests.

@@ -31,6 +31,8 @@
 //! rendered frames and the driver's odometry; the true pose is used to render, to detect
 //! collisions, and to score the run.
 
+pub mod quality;
+
 use crate::config::Config;
 use crate::logging::record::{self, RecordImage};
 use crate::logging::{LogHandle, LogLevel, Pose2D, WorldBox, WorldCylinder, WorldGeometry};
@@ -194,6 +196,9 @@ pub struct SimSummary {
     pub noise: f64,
     /// Whether the simulator's true pose was given to the planner (never, in this version).
     pub pose_hint: bool,
+    /// The obstacle perception scored against the world ([`quality`]).
+    #[serde(flatten)]
+    pub quality: quality::QualitySummary,
 }
 
 /// Where and when the robot first touched something (true pose, for diagnosis).
@@ -380,6 +385,7 @@ pub async fn run(
     let (mut doors_matched, mut landmarks_missed, mut replans) = (0u64, 0u64, 0u64);
     let mut status = GoalStatus::Active;
     let mut last_output: Option<StepOutput> = None;
+    let mut scored = quality::Quality::default();
     let mut t_s = 0.0;
 
     for k in 0..=max_ticks {
@@ -472,6 +478,10 @@ pub async fn run(
                 setpoint
             }
         };
+        if last_output.as_ref().is_some_and(|o| o.seq == k) {
+            let cells = pipeline.memory().occupied();
+            scored.observe(&setup.world, [pose.x, pose.y, pose.yaw], pipeline.surface_points(), &cells);
+        }
         if tracing::enabled!(target: "flownav::sim::frames", tracing::Level::TRACE)
             && let Some(o) = &last_output
         {
@@ -595,6 +605,7 @@ pub async fn run(
         fps: setup.fps,
         noise: setup.noise_sigma,
         pose_hint: false,
+        quality: scored.summary(),
     };
     if let Some(log) = log {
         log.log(ns(t_s), LogLevel::Info, summary.to_json_line());

@@ -1,0 +1,127 @@
+//! How good the obstacle perception is, scored against the simulated world (diagnosis only:
+//! nothing here reaches the pipeline).
+//!
+//! - **Surface points** ([`SurfacePoint`], what the obstacle memory takes in): a
+//!   point's range is compared with the true range along its bearing, found by sphere tracing
+//!   the world's clearance from the robot's true pose. The ray is 2-D (it ignores height), so a
+//!   point on a wall seen over a low box counts as wrong. A point is *good* when its range is
+//!   within [`RANGE_TOLERANCE`] of the true one.
+//! - **Occupied cells** of the obstacle memory within [`CELL_REACH_M`]: a cell is a *ghost* when
+//!   its centre, placed with the true pose, is farther than [`GHOST_M`] from every surface (the
+//!   odometry's drift counts against the memory too).
+
+use crate::offis::points::SurfacePoint;
+use mocks::World;
+use serde::Serialize;
+
+/// A point is good when `|measured / true − 1|` is at most this.
+pub const RANGE_TOLERANCE: f64 = 0.15;
+/// Only points whose true range is at most this count, m (the memory's reach).
+pub const POINT_REACH_M: f64 = 4.0;
+/// Occupied cells within this range of the robot are scored, m.
+pub const CELL_REACH_M: f64 = 2.0;
+/// A cell centre farther than this from every surface is a ghost, m (a cell is 0.1 m).
+pub const GHOST_M: f64 = 0.15;
+
+/// Counts over a run; the fractions go into the summary.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Quality {
+    points: u64,
+    points_good: u64,
+    cells: u64,
+    ghosts: u64,
+}
+
+/// The fractions, for the JSON summary (`None` when nothing was scored).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct QualitySummary {
+    /// Surface points whose range is within 15 % of the true range along their bearing.
+    pub points_range_ok: Option<f64>,
+    /// Occupied cells within 2 m farther than 0.15 m from every surface (cell-frames).
+    pub cells_ghost: Option<f64>,
+}
+
+impl Quality {
+    /// Scores one step: the robot's true pose `(x, y, yaw)`, the step's surface points and the
+    /// memory's occupied cells, both in the robot frame (forward, left).
+    pub fn observe(&mut self, world: &World, pose: [f64; 3], points: &[SurfacePoint], cells: &[[f64; 2]]) {
+        let [x, y, yaw] = pose;
+        let to_world = |f: f64, l: f64| {
+            let (s, c) = yaw.sin_cos();
+            [x + f * c - l * s, y + f * s + l * c]
+        };
+        for p in points {
+            let bearing = yaw + p.left.atan2(p.forward);
+            let Some(truth) = true_range(world, [x, y], bearing) else { continue };
+            if truth > POINT_REACH_M {
+                continue;
+            }
+            self.points += 1;
+            let measured = p.forward.hypot(p.left);
+            self.points_good += u64::from((measured / truth - 1.0).abs() <= RANGE_TOLERANCE);
+        }
+        for c in cells.iter().filter(|c| c[0].hypot(c[1]) <= CELL_REACH_M) {
+            let [cx, cy] = to_world(c[0], c[1]);
+            self.cells += 1;
+            self.ghosts += u64::from(world.clearance(cx, cy).distance_m > GHOST_M);
+        }
+    }
+
+    pub fn summary(&self) -> QualitySummary {
+        let frac = |n: u64, d: u64| (d > 0).then(|| (n as f64 / d as f64 * 1000.0).round() / 1000.0);
+        QualitySummary {
+            points_range_ok: frac(self.points_good, self.points),
+            cells_ghost: frac(self.ghosts, self.cells),
+        }
+    }
+}
+
+/// Distance from `from` along `bearing` to the first surface (sphere tracing the clearance),
+/// `None` beyond 8 m.
+fn true_range(world: &World, from: [f64; 2], bearing: f64) -> Option<f64> {
+    let (s, c) = bearing.sin_cos();
+    let mut d = 0.0;
+    for _ in 0..256 {
+        let step = world.clearance(from[0] + d * c, from[1] + d * s).distance_m;
+        if step < 0.005 {
+            return Some(d);
+        }
+        d += step;
+        if d > 8.0 {
+            return None;
+        }
+    }
+    Some(d)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn corridor() -> World {
+        let scene = mocks::scene::corridor(2.0, 10.0);
+        scene.world
+    }
+
+    #[test]
+    fn points_are_scored_against_the_true_range_and_cells_against_the_surfaces() {
+        let world = corridor();
+        // the corridor runs along +x with walls 1 m either side of y = 0 (mocks::scene)
+        let (x, y) = (world_start(&world)[0], world_start(&world)[1]);
+        let wall = |left: f64| SurfacePoint { forward: 0.0, left, up: 0.5 };
+        let mut q = Quality::default();
+        // 1.0 m to the left wall: 1.05 is good, 1.3 is not
+        q.observe(&world, [x, y, 0.0], &[wall(1.05), wall(1.3)], &[[0.0, 0.95], [0.5, 0.0]]);
+        let s = q.summary();
+        assert_eq!(s.points_range_ok, Some(0.5), "{s:?}");
+        assert_eq!(s.cells_ghost, Some(0.5), "the cell in mid-corridor is a ghost: {s:?}");
+        assert_eq!(Quality::default().summary(), QualitySummary { points_range_ok: None, cells_ghost: None });
+    }
+
+    fn world_start(world: &World) -> [f64; 2] {
+        // the middle of the corridor, away from its ends
+        let c = world.clearance(2.0, 0.0).distance_m;
+        assert!((c - 1.0).abs() < 1e-9, "the test expects walls 1 m either side of (2, 0): {c}");
+        [2.0, 0.0]
+    }
+}
