@@ -363,8 +363,8 @@ impl Pipeline {
         };
         // a goal far off the heading is turned to on the spot first
         let lookahead = STEER_LOOKAHEAD_M.min(horizon);
-        let goal_way_free = self.memory.free_distance(goal.angle_rad, lookahead) >= lookahead;
-        let goal = self.spot_turn.apply(goal, goal_way_free);
+        let memory = &self.memory;
+        let goal = self.spot_turn.apply(goal, || memory.free_distance(goal.angle_rad, lookahead) >= lookahead);
         // turns on the spot keep their angle; driving picks a free heading
         let steered = match goal.velocity > 0.0 {
             true => {

@@ -386,16 +386,16 @@ impl SpotTurn {
 
     /// `goal`, or `goal` with velocity 0 while the turn on the spot lasts. Goals that do not
     /// drive forward (turns, reversing, arrived) pass unchanged and end the turn. A turn starts
-    /// only when the way toward the goal is free (`goal_way_free`): turning on the spot toward
-    /// an obstacle only undoes the avoidance turn that led away from it, and the two made a
-    /// stationary limit cycle in front of it; a turn under way goes on.
-    pub fn apply(&mut self, goal: Goal, goal_way_free: bool) -> Goal {
+    /// only when the way toward the goal is free (`goal_way_free`, asked only then): turning on
+    /// the spot toward an obstacle only undoes the avoidance turn that led away from it, and the
+    /// two made a stationary limit cycle in front of it; a turn under way goes on.
+    pub fn apply(&mut self, goal: Goal, goal_way_free: impl FnOnce() -> bool) -> Goal {
         let off = goal.angle_rad.abs();
         self.turning = goal.status == GoalStatus::Active
             && goal.velocity > 0.0
             && match self.turning {
                 true => off > self.start_rad,
-                false => off >= self.stop_rad && goal_way_free,
+                false => off >= self.stop_rad && goal_way_free(),
             };
         match self.turning {
             true => Goal { velocity: 0.0, ..goal },

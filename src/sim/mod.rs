@@ -464,6 +464,7 @@ pub async fn run(
                 if let Some(log) = log {
                     record::record_step(log, odometry, &out, &pipeline);
                 }
+                scored.observe(&setup.world, &pose, pipeline.surface_points(), &pipeline.memory().occupied());
                 last_output = Some(out);
                 setpoint
             }
@@ -478,10 +479,6 @@ pub async fn run(
                 setpoint
             }
         };
-        if last_output.as_ref().is_some_and(|o| o.seq == k) {
-            let cells = pipeline.memory().occupied();
-            scored.observe(&setup.world, [pose.x, pose.y, pose.yaw], pipeline.surface_points(), &cells);
-        }
         if tracing::enabled!(target: "flownav::sim::frames", tracing::Level::TRACE)
             && let Some(o) = &last_output
         {

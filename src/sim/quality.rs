@@ -11,7 +11,7 @@
 //!   odometry's drift counts against the memory too).
 
 use crate::offis::points::SurfacePoint;
-use mocks::World;
+use mocks::{Pose, World};
 use serde::Serialize;
 
 /// A point is good when `|measured / true − 1|` is at most this.
@@ -42,17 +42,12 @@ pub struct QualitySummary {
 }
 
 impl Quality {
-    /// Scores one step: the robot's true pose `(x, y, yaw)`, the step's surface points and the
-    /// memory's occupied cells, both in the robot frame (forward, left).
-    pub fn observe(&mut self, world: &World, pose: [f64; 3], points: &[SurfacePoint], cells: &[[f64; 2]]) {
-        let [x, y, yaw] = pose;
-        let to_world = |f: f64, l: f64| {
-            let (s, c) = yaw.sin_cos();
-            [x + f * c - l * s, y + f * s + l * c]
-        };
+    /// Scores one step: the robot's true pose, the step's surface points and the memory's
+    /// occupied cells, both in the robot frame (forward, left).
+    pub fn observe(&mut self, world: &World, pose: &Pose, points: &[SurfacePoint], cells: &[[f64; 2]]) {
         for p in points {
-            let bearing = yaw + p.left.atan2(p.forward);
-            let Some(truth) = true_range(world, [x, y], bearing) else { continue };
+            let bearing = pose.yaw + p.left.atan2(p.forward);
+            let Some(truth) = true_range(world, [pose.x, pose.y], bearing) else { continue };
             if truth > POINT_REACH_M {
                 continue;
             }
@@ -61,7 +56,7 @@ impl Quality {
             self.points_good += u64::from((measured / truth - 1.0).abs() <= RANGE_TOLERANCE);
         }
         for c in cells.iter().filter(|c| c[0].hypot(c[1]) <= CELL_REACH_M) {
-            let [cx, cy] = to_world(c[0], c[1]);
+            let [cx, cy] = pose.transform(*c);
             self.cells += 1;
             self.ghosts += u64::from(world.clearance(cx, cy).distance_m > GHOST_M);
         }
@@ -98,30 +93,19 @@ fn true_range(world: &World, from: [f64; 2], bearing: f64) -> Option<f64> {
 mod tests {
     use super::*;
 
-    fn corridor() -> World {
-        let scene = mocks::scene::corridor(2.0, 10.0);
-        scene.world
-    }
-
     #[test]
     fn points_are_scored_against_the_true_range_and_cells_against_the_surfaces() {
-        let world = corridor();
-        // the corridor runs along +x with walls 1 m either side of y = 0 (mocks::scene)
-        let (x, y) = (world_start(&world)[0], world_start(&world)[1]);
+        // a corridor along +x with walls 1 m either side of y = 0; the robot in its middle
+        let world = mocks::scene::corridor(2.0, 10.0).world;
+        let pose = Pose::new(2.0, 0.0, 0.0);
+        assert!((world.clearance(pose.x, pose.y).distance_m - 1.0).abs() < 1e-9);
         let wall = |left: f64| SurfacePoint { forward: 0.0, left, up: 0.5 };
         let mut q = Quality::default();
         // 1.0 m to the left wall: 1.05 is good, 1.3 is not
-        q.observe(&world, [x, y, 0.0], &[wall(1.05), wall(1.3)], &[[0.0, 0.95], [0.5, 0.0]]);
+        q.observe(&world, &pose, &[wall(1.05), wall(1.3)], &[[0.0, 0.95], [0.5, 0.0]]);
         let s = q.summary();
         assert_eq!(s.points_range_ok, Some(0.5), "{s:?}");
         assert_eq!(s.cells_ghost, Some(0.5), "the cell in mid-corridor is a ghost: {s:?}");
         assert_eq!(Quality::default().summary(), QualitySummary { points_range_ok: None, cells_ghost: None });
-    }
-
-    fn world_start(world: &World) -> [f64; 2] {
-        // the middle of the corridor, away from its ends
-        let c = world.clearance(2.0, 0.0).distance_m;
-        assert!((c - 1.0).abs() < 1e-9, "the test expects walls 1 m either side of (2, 0): {c}");
-        [2.0, 0.0]
     }
 }
