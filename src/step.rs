@@ -335,7 +335,8 @@ impl Pipeline {
         };
         let stop_ahead = stop_ahead.unwrap_or(f64::INFINITY);
         let horizon = self.memory.horizon(stop_ahead);
-        let avoided = self.memory.threat_within(stop_ahead);
+        // the nearest threat, and the nearest on the other side of the heading: MOFIS avoids both
+        let (avoided, other) = crate::mofis::memory::nearer(self.memory.threat_sides(stop_ahead));
         // pushing against something unseen: turn away on the spot, to the freer side
         let memory = &self.memory;
         let recoveries_before = self.stall.recoveries();
@@ -385,7 +386,7 @@ impl Pipeline {
             false => free - mp.robot_radius_m,
         };
         let view = Perception { obstacle: avoided, ..perception.clone() };
-        let mofis = self.mofis.step_with_front(&view, Some(front.max(0.0)), &steered, frame_dt)?;
+        let mofis = self.mofis.step_sides(&view, other.as_ref(), Some(front.max(0.0)), &steered, frame_dt)?;
         self.last_setpoint = mofis.setpoint;
         Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, steered, mofis }))
     }

@@ -298,6 +298,34 @@ mod mofis {
     }
 
     #[test]
+    fn obstacles_on_both_sides_are_avoided_together() {
+        let o = |distance, bearing| Obstacle {
+            present: true,
+            distance_m: Some(distance),
+            bearing_rad: Some(bearing),
+            cell: None,
+        };
+        // the nearest alone, 0.8 m at 0.3 rad left: a firm turn right
+        let mut m = mofis();
+        let alone = m.step_sides(&obstacle(0.8, 0.3), None, None, &goal(0.35, 0.0), SETTLED).unwrap();
+        assert!(alone.setpoint.omega < -0.3, "{alone:?}");
+        // the same on both sides: the turns cancel, the robot goes down the middle, slowed
+        let mut m = mofis();
+        let both = m.step_sides(&obstacle(0.8, 0.3), Some(&o(0.8, -0.3)), None, &goal(0.35, 0.0), SETTLED).unwrap();
+        assert!(both.setpoint.omega.abs() < 1e-9, "{both:?}");
+        assert!(both.avoidance.speed <= alone.avoidance.speed + 1e-12 && both.setpoint.v < 0.35 * 0.5, "{both:?}");
+        assert!((both.weight - alone.weight).abs() < 1e-12, "{both:?}");
+        // a farther one on the right tempers the turn away from the near one without flipping it
+        let mut m = mofis();
+        let far = m.step_sides(&obstacle(0.8, 0.3), Some(&o(1.4, -0.25)), None, &goal(0.35, 0.0), SETTLED).unwrap();
+        assert!(far.setpoint.omega < -1e-3 && far.setpoint.omega > alone.setpoint.omega, "{far:?} vs {alone:?}");
+        // swapping which one is called the nearer changes nothing
+        let mut m = mofis();
+        let swapped = m.step_sides(&obstacle(1.4, -0.25), Some(&o(0.8, 0.3)), None, &goal(0.35, 0.0), SETTLED).unwrap();
+        assert!((swapped.setpoint.omega - far.setpoint.omega).abs() < 1e-12, "{swapped:?} vs {far:?}");
+    }
+
+    #[test]
     fn dead_ahead_obstacle_is_passed_on_the_goal_side() {
         for goal_angle in [-0.3, 0.3] {
             let mut m = mofis();

@@ -349,10 +349,17 @@ impl ObstacleMemory {
     /// instead of vanishing, and the threat does not jump to a wall behind it and back while
     /// the robot's heading jitters (each jump flipped the avoidance turn).
     pub fn threat_within(&self, reach_m: f64) -> Obstacle {
+        nearer(self.threat_sides(reach_m)).0
+    }
+
+    /// [`threat_within`](Self::threat_within) on each side of the robot's heading: `[left,
+    /// right]`, a cell dead ahead (across ≥ 0) counting as left. MOFIS avoids both
+    /// ([`crate::mofis::Mofis::step_sides`]).
+    pub fn threat_sides(&self, reach_m: f64) -> [Obstacle; 2] {
         let p = &self.params;
         let path = p.robot_radius_m + p.path_margin_m;
         let horizon = self.horizon(reach_m);
-        let mut best: Option<(f64, [f64; 2])> = None;
+        let mut best: [Option<(f64, [f64; 2])>; 2] = [None, None];
         for (key, c) in &self.cells {
             if c.evidence < p.occupied {
                 continue;
@@ -372,16 +379,17 @@ impl ObstacleMemory {
                 false => continue,
             };
             let d = (along.hypot(across) - p.robot_radius_m).max(0.0) + fade;
-            if best.is_none_or(|(bd, _)| d < bd) {
-                best = Some((d, [along, across]));
+            let side = &mut best[usize::from(across < 0.0)];
+            if side.is_none_or(|(bd, _)| d < bd) {
+                *side = Some((d, [along, across]));
             }
         }
-        match best {
+        best.map(|b| match b {
             Some((d, [f, l])) => {
                 Obstacle { present: true, distance_m: Some(d), bearing_rad: Some(l.atan2(f)), cell: None }
             }
             None => Obstacle::default(),
-        }
+        })
     }
 
     /// How far ahead of its origin the path of a robot that stops after `reach_m` matters:
@@ -507,6 +515,17 @@ impl ObstacleMemory {
     /// Centre of cell `key`, robot frame.
     fn to_robot(&self, key: (i32, i32)) -> [f64; 2] {
         robot_frame(self.pose, self.params.cell_m, key)
+    }
+}
+
+/// The nearer of the `[left, right]` threats ([`ObstacleMemory::threat_sides`]; left on a tie),
+/// and the other one when it is present too.
+pub fn nearer([left, right]: [Obstacle; 2]) -> (Obstacle, Option<Obstacle>) {
+    match (left.distance_m, right.distance_m) {
+        (Some(l), Some(r)) if r < l => (right, Some(left)),
+        (Some(_), Some(_)) => (left, Some(right)),
+        (Some(_), None) => (left, None),
+        _ => (right, None),
     }
 }
 
@@ -644,6 +663,27 @@ mod tests {
         // nor is the box beside the path when it is 1.2 m ahead, where the band has narrowed to
         // nothing
         assert!(!run(&[pt(1.2, -0.45)]).present);
+    }
+
+    #[test]
+    fn each_side_has_its_own_threat() {
+        let mut m = memory();
+        // a box 0.9 m ahead, 0.25 m left, and another 1.0 m ahead, 0.3 m right
+        for _ in 0..2 {
+            step(&mut m, STILL, 0.1, &[pt(0.9, 0.25), pt(1.0, -0.3)]);
+        }
+        let [left, right] = m.threat_sides(f64::INFINITY);
+        let (l, r) = (left.bearing_rad.unwrap(), right.bearing_rad.unwrap());
+        assert!(l > 0.2 && r < -0.2, "{left:?} {right:?}");
+        assert!(left.distance_m.unwrap() < right.distance_m.unwrap());
+        assert_eq!(m.threat(), left, "the nearer of the two");
+        // with the left one gone only the right one is left, on its side
+        let mut m = memory();
+        for _ in 0..2 {
+            step(&mut m, STILL, 0.1, &[pt(1.0, -0.3)]);
+        }
+        let [left, right] = m.threat_sides(f64::INFINITY);
+        assert!(!left.present && right.present && m.threat() == right, "{left:?} {right:?}");
     }
 
     #[test]

@@ -299,6 +299,23 @@ impl Mofis {
         goal: &Goal,
         dt: f64,
     ) -> Result<MofisOutput, MofisError> {
+        self.step_sides(perception, None, front_m, goal, dt)
+    }
+
+    /// [`Mofis::step_with_front`] with a second obstacle on the other side of the heading
+    /// (`perception.obstacle` is the nearer): each is avoided by the rule bases on its own, and
+    /// their turns are summed weighted by their fusion weights, with the slower speed and the
+    /// larger weight. Avoiding only the nearest of two cells on either side flipped the turn
+    /// whenever the nearest changed sides; the sum changes continuously, and in a gap it
+    /// centres the robot.
+    pub fn step_sides(
+        &mut self,
+        perception: &Perception,
+        other: Option<&crate::perception::Obstacle>,
+        front_m: Option<f64>,
+        goal: &Goal,
+        dt: f64,
+    ) -> Result<MofisOutput, MofisError> {
         let mut inputs = self.inputs(perception);
         if let Some(f) = front_m.filter(|f| f.is_finite()) {
             inputs[2] = f.clamp(0.0, self.params.sensing_range_m);
@@ -325,12 +342,36 @@ impl Mofis {
             self.fusion_buf[id.0] = v;
         }
         self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
+        let mut weight = self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0);
+        let mut avoidance = avoidance;
+        if let Some(o) = other.filter(|o| o.present && perception.obstacle.present) {
+            let range = self.params.sensing_range_m;
+            let d2 = o.distance_m.filter(|v| v.is_finite()).unwrap_or(range).clamp(0.0, range);
+            let b2 = o.bearing_rad.filter(|v| v.is_finite()).unwrap_or(0.0);
+            for (id, v) in self.avoid_in.iter().zip([d2, b2, front]) {
+                self.avoid_buf[id.0] = v;
+            }
+            self.avoidance.evaluate_into(&self.avoid_buf, &mut self.avoid_ev)?;
+            let (speed2, turn2) = (
+                self.avoid_ev.value(self.avoid_out[0]).clamp(0.0, 1.0),
+                self.avoid_ev.value(self.avoid_out[1]).clamp(-1.0, 1.0),
+            );
+            for (id, v) in self.fusion_in.iter().zip([d2, b2.abs()]) {
+                self.fusion_buf[id.0] = v;
+            }
+            self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
+            let w2 = self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0);
+            if weight + w2 > 1e-9 {
+                avoidance.turn = ((weight * avoidance.turn + w2 * turn2) / (weight + w2)).clamp(-1.0, 1.0);
+            }
+            avoidance.speed = avoidance.speed.min(speed2);
+            weight = weight.max(w2);
+        }
         // a turn on the spot (goal velocity 0) cannot run the round robot into anything: the
         // goal's turn alone
-        let weight = match goal.velocity > 0.0 {
-            true => self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0),
-            false => 0.0,
-        };
+        if goal.velocity <= 0.0 {
+            weight = 0.0;
+        }
 
         let fused = if goal.status == GoalStatus::Active {
             let max_turn = self.limiter.limits().max_turn_rate;
