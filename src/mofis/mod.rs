@@ -304,8 +304,8 @@ impl Mofis {
 
     /// [`Mofis::step_with_front`] with a second obstacle on the other side of the heading
     /// (`perception.obstacle` is the nearer): each is avoided by the rule bases on its own, and
-    /// their turns are summed weighted by their fusion weights, with the slower speed and the
-    /// larger weight. Avoiding only the nearest of two cells on either side flipped the turn
+    /// their turns are averaged weighted by fusion weight ÷ distance (a far cell on one side
+    /// does not cancel a near one on the other), with the slower speed and the larger weight. Avoiding only the nearest of two cells on either side flipped the turn
     /// whenever the nearest changed sides; the sum changes continuously, and in a gap it
     /// centres the robot.
     pub fn step_sides(
@@ -361,8 +361,11 @@ impl Mofis {
             }
             self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
             let w2 = self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0);
-            if weight + w2 > 1e-9 {
-                avoidance.turn = ((weight * avoidance.turn + w2 * turn2) / (weight + w2)).clamp(-1.0, 1.0);
+            // each side's share: its fusion weight over its distance, so that a far cell on one
+            // side does not cancel a near one on the other
+            let (a1, a2) = (weight / dist.max(0.1), w2 / d2.max(0.1));
+            if a1 + a2 > 1e-9 {
+                avoidance.turn = ((a1 * avoidance.turn + a2 * turn2) / (a1 + a2)).clamp(-1.0, 1.0);
             }
             avoidance.speed = avoidance.speed.min(speed2);
             weight = weight.max(w2);
