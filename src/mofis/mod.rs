@@ -22,7 +22,7 @@ use crate::config::ConfigError;
 use crate::control::{ControlLimits, Limiter};
 use crate::fuzzy::{Evaluation, FuzzyError, FuzzySystem, InputId, OutputId};
 use crate::pafsis::{Goal, GoalStatus};
-use crate::perception::{Perception, TpoShape};
+use crate::perception::{Obstacle, Perception, TpoShape};
 use hal::BodyVelocity;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -258,19 +258,43 @@ impl Mofis {
     pub fn inputs(&self, p: &Perception) -> [f64; 3] {
         let range = self.params.sensing_range_m;
         let finite = |x: Option<f64>| x.filter(|v| v.is_finite());
-        let (dist, bearing) = if p.obstacle.present {
-            (
-                finite(p.obstacle.distance_m).unwrap_or(self.params.unknown_obstacle_distance_m).clamp(0.0, range),
-                finite(p.obstacle.bearing_rad).unwrap_or(0.0),
-            )
-        } else {
-            (range, 0.0)
-        };
+        let [dist, bearing] = self.obstacle_inputs(&p.obstacle);
         let front = match p.tpo.shape {
             TpoShape::Wall | TpoShape::Corner => finite(p.tpo.distance_m).map_or(range, |d| d.clamp(0.0, range)),
             TpoShape::Door | TpoShape::Corridor | TpoShape::None => range,
         };
         [dist, bearing, front]
+    }
+
+    /// The obstacle's distance and bearing as the rule bases take them ([`inputs`](Self::inputs)).
+    fn obstacle_inputs(&self, o: &Obstacle) -> [f64; 2] {
+        let range = self.params.sensing_range_m;
+        let finite = |x: Option<f64>| x.filter(|v| v.is_finite());
+        match o.present {
+            true => [
+                finite(o.distance_m).unwrap_or(self.params.unknown_obstacle_distance_m).clamp(0.0, range),
+                finite(o.bearing_rad).unwrap_or(0.0),
+            ],
+            false => [range, 0.0],
+        }
+    }
+
+    /// Both rule bases for one obstacle at `dist`, `bearing` with `front` free ahead: the
+    /// avoidance behaviour and its fusion weight.
+    fn avoid(&mut self, dist: f64, bearing: f64, front: f64) -> Result<(Avoidance, f64), MofisError> {
+        for (id, v) in self.avoid_in.iter().zip([dist, bearing, front]) {
+            self.avoid_buf[id.0] = v;
+        }
+        self.avoidance.evaluate_into(&self.avoid_buf, &mut self.avoid_ev)?;
+        let avoidance = Avoidance {
+            speed: self.avoid_ev.value(self.avoid_out[0]).clamp(0.0, 1.0),
+            turn: self.avoid_ev.value(self.avoid_out[1]).clamp(-1.0, 1.0),
+        };
+        for (id, v) in self.fusion_in.iter().zip([dist, bearing.abs()]) {
+            self.fusion_buf[id.0] = v;
+        }
+        self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
+        Ok((avoidance, self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0)))
     }
 
     /// The fraction of the forward speed allowed while steering `off` rad off the heading
@@ -305,13 +329,13 @@ impl Mofis {
     /// [`Mofis::step_with_front`] with a second obstacle on the other side of the heading
     /// (`perception.obstacle` is the nearer): each is avoided by the rule bases on its own, and
     /// their turns are averaged weighted by fusion weight ÷ distance (a far cell on one side
-    /// does not cancel a near one on the other), with the slower speed and the larger weight. Avoiding only the nearest of two cells on either side flipped the turn
-    /// whenever the nearest changed sides; the sum changes continuously, and in a gap it
-    /// centres the robot.
+    /// does not cancel a near one on the other), with the slower speed and the larger weight.
+    /// Avoiding only the nearest of two cells on either side flipped the turn whenever the
+    /// nearest changed sides; the sum changes continuously, and in a gap it centres the robot.
     pub fn step_sides(
         &mut self,
         perception: &Perception,
-        other: Option<&crate::perception::Obstacle>,
+        other: Option<&Obstacle>,
         front_m: Option<f64>,
         goal: &Goal,
         dt: f64,
@@ -330,44 +354,17 @@ impl Mofis {
             let side = *self.pass_side.get_or_insert(goal_side);
             bearing = -side * self.params.dead_ahead_rad;
         }
-        for (id, v) in self.avoid_in.iter().zip([dist, bearing, front]) {
-            self.avoid_buf[id.0] = v;
-        }
-        self.avoidance.evaluate_into(&self.avoid_buf, &mut self.avoid_ev)?;
-        let avoidance = Avoidance {
-            speed: self.avoid_ev.value(self.avoid_out[0]).clamp(0.0, 1.0),
-            turn: self.avoid_ev.value(self.avoid_out[1]).clamp(-1.0, 1.0),
-        };
-        for (id, v) in self.fusion_in.iter().zip([dist, bearing.abs()]) {
-            self.fusion_buf[id.0] = v;
-        }
-        self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
-        let mut weight = self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0);
-        let mut avoidance = avoidance;
+        let (mut avoidance, mut weight) = self.avoid(dist, bearing, front)?;
         if let Some(o) = other.filter(|o| o.present && perception.obstacle.present) {
-            let range = self.params.sensing_range_m;
-            let d2 = o.distance_m.filter(|v| v.is_finite()).unwrap_or(range).clamp(0.0, range);
-            let b2 = o.bearing_rad.filter(|v| v.is_finite()).unwrap_or(0.0);
-            for (id, v) in self.avoid_in.iter().zip([d2, b2, front]) {
-                self.avoid_buf[id.0] = v;
-            }
-            self.avoidance.evaluate_into(&self.avoid_buf, &mut self.avoid_ev)?;
-            let (speed2, turn2) = (
-                self.avoid_ev.value(self.avoid_out[0]).clamp(0.0, 1.0),
-                self.avoid_ev.value(self.avoid_out[1]).clamp(-1.0, 1.0),
-            );
-            for (id, v) in self.fusion_in.iter().zip([d2, b2.abs()]) {
-                self.fusion_buf[id.0] = v;
-            }
-            self.fusion.evaluate_into(&self.fusion_buf, &mut self.fusion_ev)?;
-            let w2 = self.fusion_ev.value(self.fusion_out).clamp(0.0, 1.0);
+            let [d2, b2] = self.obstacle_inputs(o);
+            let (second, w2) = self.avoid(d2, b2, front)?;
             // each side's share: its fusion weight over its distance, so that a far cell on one
             // side does not cancel a near one on the other
             let (a1, a2) = (weight / dist.max(0.1), w2 / d2.max(0.1));
             if a1 + a2 > 1e-9 {
-                avoidance.turn = ((a1 * avoidance.turn + a2 * turn2) / (a1 + a2)).clamp(-1.0, 1.0);
+                avoidance.turn = ((a1 * avoidance.turn + a2 * second.turn) / (a1 + a2)).clamp(-1.0, 1.0);
             }
-            avoidance.speed = avoidance.speed.min(speed2);
+            avoidance.speed = avoidance.speed.min(second.speed);
             weight = weight.max(w2);
         }
         // a turn on the spot (goal velocity 0) cannot run the round robot into anything: the
