@@ -134,8 +134,10 @@ pub struct StepOutput {
     pub prev_t_ns: u64,
     pub flow: FlowField,
     pub perception: Perception,
-    /// The obstacle MOFIS avoided: the obstacle memory's threat (the nearest solid thing in or
-    /// beside the robot's path, remembered over frames), not this frame's OFFIS obstacle.
+    /// The obstacle MOFIS avoided: the nearer of the obstacle memory's threats on either side
+    /// (solid things in or beside the robot's path, remembered over frames), not this frame's
+    /// OFFIS obstacle. The other side's threat is avoided too (its share is in
+    /// `mofis.avoidance`) but not kept here.
     pub avoided: Obstacle,
     pub goal: Goal,
     /// `goal` after steering around remembered obstacles: what MOFIS was given.

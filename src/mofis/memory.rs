@@ -18,12 +18,12 @@
 //!   beyond `max_range_m` are forgotten;
 //! - a cell is *occupied* when its evidence reaches `occupied`: seen in at least two frames.
 //!
-//! The obstacle handed to MOFIS is the most threatening occupied cell ahead of the robot's
-//! origin: the nearest one in its path (within `robot_radius_m + path_margin_m` of the heading
-//! line), or just beside it (in a band `side_margin_m` wide that narrows ahead), reported
-//! farther away the farther beyond the path it lies ([`ObstacleMemory::threat_within`]), with its bearing from the
-//! robot's origin. Walls and boxes alike: a wall the robot drives at is in
-//! its path, a corridor wall beside it is not.
+//! The obstacles handed to MOFIS are the most threatening occupied cells ahead of the robot's
+//! origin, one on each side of its heading: the nearest in its path (within `robot_radius_m +
+//! path_margin_m` of the heading line), or just beside it (in a band `side_margin_m` wide that
+//! narrows ahead), reported farther away the farther beyond the path it lies, with its bearing
+//! from the robot's origin ([`ObstacleMemory::threat_sides`]). Walls and boxes alike: a wall
+//! the robot drives at is in its path, a corridor wall beside it is not.
 //!
 //! Pure and deterministic: the cells live in a `BTreeMap`, so the same inputs give the same
 //! outputs in the same order (replay is bit-exact).

@@ -311,27 +311,21 @@ impl Mofis {
     /// result for a step `dt` seconds after the previous one. A goal that is not active (arrived,
     /// failed) brings the robot to a stop within the deceleration limits.
     pub fn step(&mut self, perception: &Perception, goal: &Goal, dt: f64) -> Result<MofisOutput, MofisError> {
-        self.step_with_front(perception, None, goal, dt)
+        self.step_sides(perception, None, None, goal, dt)
     }
 
-    /// [`Mofis::step`] with the distance ahead measured otherwise (the obstacle memory's free
-    /// path, m) instead of the TPO's wall/corner distance; `None` = from the TPO.
-    pub fn step_with_front(
-        &mut self,
-        perception: &Perception,
-        front_m: Option<f64>,
-        goal: &Goal,
-        dt: f64,
-    ) -> Result<MofisOutput, MofisError> {
-        self.step_sides(perception, None, front_m, goal, dt)
-    }
-
-    /// [`Mofis::step_with_front`] with a second obstacle on the other side of the heading
-    /// (`perception.obstacle` is the nearer): each is avoided by the rule bases on its own, and
-    /// their turns are averaged weighted by fusion weight ÷ distance (a far cell on one side
-    /// does not cancel a near one on the other), with the slower speed and the larger weight.
-    /// Avoiding only the nearest of two cells on either side flipped the turn whenever the
-    /// nearest changed sides; the sum changes continuously, and in a gap it centres the robot.
+    /// [`Mofis::step`] with a second obstacle on the other side of the heading and the distance
+    /// ahead measured otherwise.
+    ///
+    /// `front_m`: the free distance ahead (the obstacle memory's free path, m) instead of the
+    /// TPO's wall/corner distance; `None` = from the TPO.
+    ///
+    /// `other`: the second obstacle (`perception.obstacle` is the nearer). Each is avoided by
+    /// the rule bases on its own, and their turns are averaged weighted by fusion weight ÷
+    /// distance (a far cell on one side does not cancel a near one on the other), with the
+    /// slower speed and the larger weight. Avoiding only the nearest of two cells on either
+    /// side flipped the turn whenever the nearest changed sides; the sum changes continuously,
+    /// and in a gap it centres the robot.
     pub fn step_sides(
         &mut self,
         perception: &Perception,
