@@ -23,8 +23,10 @@
 
 use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
+use crate::mofis::escape::Escape;
 use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::stall::{Manoeuvre, StallRecovery};
+use crate::mofis::{Ahead, stop_speed};
 use crate::mofis::{Mofis, MofisError, MofisOutput, SpotTurn};
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
@@ -72,6 +74,9 @@ const CENTRE_LOOKAHEAD_M: f64 = 1.5;
 const CENTRE_MAX_RAD: f64 = 0.3;
 /// A stalled robot compares the free path this far to either side, rad.
 const STALL_PROBE_RAD: f64 = 0.8;
+/// The stopping gate looks this far ahead of the robot's origin, m (at the top speed, 0.5 m/s,
+/// braking at 0.8 m/s² takes 0.16 m).
+const STOP_LOOKAHEAD_M: f64 = 1.0;
 /// A stall marks the obstacle memory solid over this arc in front of the robot, rad.
 const CONTACT_ARC_RAD: f64 = 0.5;
 
@@ -180,6 +185,11 @@ pub struct Pipeline {
     /// The set-point of the previous step (what the odometry of this step should show).
     last_setpoint: BodyVelocity,
     spot_turn: SpotTurn,
+    escape: Escape,
+    /// How far an escape heading's path must be free, m.
+    escape_lookahead: f64,
+    /// The stopping gate's margin, m, and deceleration, m/s² ([`crate::mofis::Ahead`]).
+    stop_gate: (f64, f64),
 }
 
 impl Pipeline {
@@ -205,6 +215,9 @@ impl Pipeline {
             stall: StallRecovery::new(cfg.mofis.stall, cfg.control.max_reverse_speed > 0.0),
             last_setpoint: BodyVelocity::ZERO,
             spot_turn: SpotTurn::new(&cfg.mofis),
+            escape: Escape::new(cfg.mofis.escape),
+            escape_lookahead: cfg.mofis.escape.lookahead_m,
+            stop_gate: (cfg.mofis.stop_margin_m, cfg.mofis.stop_decel_mps2),
             flow,
             backend,
             offis: Offis::new(cfg.offis.clone())?,
@@ -240,6 +253,12 @@ impl Pipeline {
         self.stall.recoveries()
     }
 
+    /// How many times the robot stood still too long and turned to a free heading
+    /// ([`crate::mofis::escape`]).
+    pub fn escapes(&self) -> u32 {
+        self.escape.escapes()
+    }
+
     /// The PAFSIS planner, when running a mission.
     pub fn pafsis(&self) -> Option<&Pafsis> {
         match &self.navigator {
@@ -267,6 +286,7 @@ impl Pipeline {
         self.offis.reset_filter();
         self.memory.clear();
         self.stall.reset();
+        self.escape.reset();
         self.spot_turn.reset();
         self.last_setpoint = BodyVelocity::ZERO;
         self.mofis.fallback()
@@ -364,8 +384,22 @@ impl Pipeline {
             },
             _ => goal,
         };
-        // a goal far off the heading is turned to on the spot first
         let lookahead = STEER_LOOKAHEAD_M.min(horizon);
+        // standing still too long: turn to the free heading nearest the goal, round the full
+        // circle, and drive off that way (a stall recovery's manoeuvre goes first)
+        let goal = match turn_away {
+            None => {
+                let lane = self.pafsis().and_then(Pafsis::lane);
+                let (memory, yaw) = (&self.memory, self.memory.yaw());
+                let look = self.escape_lookahead;
+                self.escape.apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| {
+                    let seen = memory.free_distance(h, look);
+                    lane.as_ref().map_or(seen, |l| seen.min(memory.lane_free_distance(l, h, look)))
+                })
+            }
+            Some(_) => goal,
+        };
+        // a goal far off the heading is turned to on the spot first
         let memory = &self.memory;
         let goal = self.spot_turn.apply(goal, || memory.free_distance(goal.angle_rad, lookahead) >= lookahead);
         // turns on the spot keep their angle; driving picks a free heading
@@ -387,9 +421,18 @@ impl Pipeline {
             true => self.mofis_range,
             false => free - mp.robot_radius_m,
         };
+        // the stopping gate: never faster than the robot can stop short of what is in its way
+        let (margin, decel) = (self.stop_gate.0, self.stop_gate.1);
+        let in_way = self.memory.free_width(0.0, mp.robot_radius_m + margin, STOP_LOOKAHEAD_M);
+        let ahead =
+            Ahead { front_m: front.max(0.0), stop_speed_mps: stop_speed(in_way - mp.robot_radius_m - margin, decel) };
         let view = Perception { obstacle: avoided, ..perception.clone() };
-        let mofis = self.mofis.step_sides(&view, other.as_ref(), Some(front.max(0.0)), &steered, frame_dt)?;
+        let mofis = self.mofis.step_sides(&view, other.as_ref(), Some(ahead), &steered, frame_dt)?;
         self.last_setpoint = mofis.setpoint;
+        match turn_away {
+            None => self.escape.observe(&goal, mofis.setpoint.v, frame_dt),
+            Some(_) => self.escape.reset_standstill(),
+        }
         Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, steered, mofis }))
     }
 

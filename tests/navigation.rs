@@ -336,6 +336,25 @@ mod mofis {
     }
 
     #[test]
+    fn the_stopping_gate_caps_the_speed_whatever_the_rules_say() {
+        use flownav::mofis::{Ahead, stop_speed};
+        // √(2 · 0.8 · 0.1) = 0.4 m/s; nothing free: 0
+        assert!((stop_speed(0.1, 0.8) - 0.4).abs() < 1e-12);
+        assert_eq!(stop_speed(-0.05, 0.8), 0.0);
+        // nothing seen, the goal dead ahead at 0.35 m/s: the gate alone slows the robot
+        let mut m = mofis();
+        let gate = |v| Some(Ahead { front_m: 5.0, stop_speed_mps: v });
+        let out = m.step_sides(&Perception::default(), None, gate(0.2), &goal(0.35, 0.0), SETTLED).unwrap();
+        assert!((out.setpoint.v - 0.2).abs() < 1e-9, "{out:?}");
+        let out = m.step_sides(&Perception::default(), None, gate(0.0), &goal(0.35, 0.1), SETTLED).unwrap();
+        assert_eq!(out.setpoint.v, 0.0, "{out:?}");
+        assert!((out.setpoint.omega - 1.5 * 0.1).abs() < 1e-9, "still turns: {out:?}");
+        // a gate above the goal speed changes nothing
+        let out = m.step_sides(&Perception::default(), None, gate(1.0), &goal(0.35, 0.0), SETTLED).unwrap();
+        assert!((out.setpoint.v - 0.35).abs() < 1e-9, "{out:?}");
+    }
+
+    #[test]
     fn no_obstacle_follows_the_goal() {
         let mut m = mofis();
         // (0.15 rad: within the look-before-driving band, so at full speed)

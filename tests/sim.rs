@@ -89,6 +89,7 @@ fn summary_json_starts_with_the_contract_fields() {
         frames: 1246,
         failsafe_stops: 0,
         stall_recoveries: 0,
+        escapes: 0,
         first_contact: None,
         tpo_frames: [1, 2, 3, 4, 5],
         doors_matched: 0,

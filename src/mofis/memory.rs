@@ -12,10 +12,14 @@
 //!   one cell count once), adding 1 to the cell's evidence (capped at `max_evidence`);
 //! - evidence decays with a half-life of `half_life_view_s` where the camera *sees through* the
 //!   cell now (a surface was measured farther away on the cell's bearing, by a ray that passes
-//!   over the cell lower than the top of what was seen in it: the cell is free), and
-//!   `half_life_aside_s` everywhere else (out of view, or in view but not measured: a close
-//!   textureless face, a bearing with no reliable flow; nothing confirms or clears it); cells
-//!   beyond `max_range_m` are forgotten;
+//!   over the cell lower than the top of what was seen in it: the cell is free),
+//!   `half_life_aside_s` where it is in view but not measured (a close textureless face, a
+//!   bearing with no reliable flow, a robot not driving forward), and out of view (beside or
+//!   behind the robot) per `out_half_life_m` driven, `out_half_life_rad` turned and
+//!   `out_half_life_s` of time: there nothing confirms or clears it, and what makes it wrong
+//!   is the dead-reckoning drift, so a robot that stands beside an obstacle keeps it (fading
+//!   it with time alone made robots forget what they stood next to, then drive into it);
+//!   cells beyond `max_range_m` are forgotten;
 //! - a cell is *occupied* when its evidence reaches `occupied`: seen in at least two frames.
 //!
 //! The obstacles handed to MOFIS are the most threatening occupied cells ahead of the robot's
@@ -43,8 +47,18 @@ pub struct MemoryParams {
     pub cell_m: f64,
     /// Evidence half-life of a cell in the camera's view, s.
     pub half_life_view_s: f64,
-    /// Evidence half-life of a cell out of view (beside or behind the robot), s.
+    /// Evidence half-life of a cell in view that the step did not measure (a close textureless
+    /// face, a bearing without reliable flow, a robot not driving forward), s.
     pub half_life_aside_s: f64,
+    /// Evidence half-life of a cell out of view (beside or behind the robot), per distance
+    /// driven, m ...
+    pub out_half_life_m: f64,
+    /// ... per angle turned, rad ...
+    pub out_half_life_rad: f64,
+    /// ... and over time, s: nothing can confirm or clear it there, and what makes it wrong is
+    /// the dead-reckoning drift, which grows with the motion; a robot standing beside an
+    /// obstacle keeps it.
+    pub out_half_life_s: f64,
     /// Evidence half-life of a cell marked by a contact, per distance driven, m ...
     pub contact_half_life_m: f64,
     /// ... and over time, s: what the robot touched is certain, unlike a flow point, and the
@@ -99,6 +113,9 @@ impl Default for MemoryParams {
             cell_m: 0.1,
             half_life_view_s: 0.5,
             half_life_aside_s: 4.0,
+            out_half_life_m: 1.5,
+            out_half_life_rad: 6.0,
+            out_half_life_s: 12.0,
             contact_half_life_m: 1.0,
             contact_half_life_s: 15.0,
             occupied: 1.5,
@@ -128,6 +145,9 @@ impl MemoryParams {
             ("cell_m", pos(self.cell_m) && self.cell_m <= 1.0, "must be in (0, 1] m"),
             ("half_life_view_s", pos(self.half_life_view_s), "must be a positive time in s"),
             ("half_life_aside_s", pos(self.half_life_aside_s), "must be a positive time in s"),
+            ("out_half_life_m", pos(self.out_half_life_m), "must be a positive distance in m"),
+            ("out_half_life_rad", pos(self.out_half_life_rad), "must be a positive angle in rad"),
+            ("out_half_life_s", pos(self.out_half_life_s), "must be a positive time in s"),
             ("contact_half_life_m", pos(self.contact_half_life_m), "must be a positive distance in m"),
             ("contact_half_life_s", pos(self.contact_half_life_s), "must be a positive time in s"),
             ("occupied", pos(self.occupied), "must be a positive evidence (frames)"),
@@ -220,6 +240,11 @@ impl ObstacleMemory {
         }
     }
 
+    /// The robot's heading in the memory's (odometry) frame, rad.
+    pub fn yaw(&self) -> f64 {
+        self.pose.yaw
+    }
+
     pub fn params(&self) -> &MemoryParams {
         &self.params
     }
@@ -261,6 +286,10 @@ impl ObstacleMemory {
             let (k_view, k_aside) = (0.5f64.powf(dt / p.half_life_view_s), 0.5f64.powf(dt / p.half_life_aside_s));
             let driven = (odo.v * dt).abs();
             let k_contact = 0.5f64.powf(driven / p.contact_half_life_m + dt / p.contact_half_life_s);
+            // out of view nothing can confirm or clear a cell: it fades as the dead-reckoned pose
+            // drifts (with the motion), and slowly over time, not while the robot stands beside it
+            let turned = (odo.omega * dt).abs();
+            let k_out = 0.5f64.powf(driven / p.out_half_life_m + turned / p.out_half_life_rad + dt / p.out_half_life_s);
             let (half_fov, cell) = (self.half_fov_rad, p.cell_m);
             // what the camera measured along each bearing sector this step
             self.seen.resize_with(SECTORS, Vec::new);
@@ -283,9 +312,11 @@ impl ObstacleMemory {
                     && sector(l.atan2(f), half_fov).is_some_and(|k| {
                         seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
                     });
+                let out_of_view = f <= 0.0 || sector(l.atan2(f), half_fov).is_none();
                 c.evidence *= match (c.contact, through) {
                     (true, _) => k_contact,
                     (false, true) => k_view,
+                    (false, false) if out_of_view => k_out,
                     (false, false) => k_aside,
                 };
                 range <= p.max_range_m && c.evidence >= 0.05
@@ -402,8 +433,13 @@ impl ObstacleMemory {
     /// How far the robot can drive along `heading` (rad, robot frame, + left) before its
     /// footprint widened by `path_margin_m` meets an occupied cell, up to `lookahead_m`.
     pub fn free_distance(&self, heading: f64, lookahead_m: f64) -> f64 {
+        self.free_width(heading, self.params.robot_radius_m + self.params.path_margin_m, lookahead_m)
+    }
+
+    /// How far a band `half` wide (m) either side of `heading` (rad, robot frame) is free of
+    /// occupied cells ahead of the robot's origin, up to `lookahead_m`; measured from the origin.
+    pub fn free_width(&self, heading: f64, half: f64, lookahead_m: f64) -> f64 {
         let p = &self.params;
-        let half = p.robot_radius_m + p.path_margin_m;
         let (s, c) = heading.sin_cos();
         let mut free = lookahead_m;
         for (key, cell) in &self.cells {
@@ -821,6 +857,45 @@ mod tests {
         step(&mut m, turn, 1.0, &[]);
         let o = m.threat();
         assert!(o.bearing_rad.unwrap().abs() < 0.2, "{o:?}");
+    }
+
+    #[test]
+    fn out_of_view_a_cell_fades_with_the_motion_not_while_the_robot_stands_beside_it() {
+        let p = MemoryParams::default();
+        let mut m = memory();
+        // seen in four frames 0.4 m to the left, 0.5 m ahead: out of view (39°)
+        for _ in 0..4 {
+            step(&mut m, STILL, 0.1, &[pt(0.5, 0.4)]);
+        }
+        assert_eq!(m.occupied().len(), 1);
+        let before = m.cells.values().next().unwrap().evidence;
+        // standing beside it for 10 s: 0.5^(10 / 12) of the evidence stays (the 4 s half-life
+        // of a cell in view would leave 0.18 of it, below `occupied`)
+        for _ in 0..100 {
+            step(&mut m, STILL, 0.1, &[]);
+        }
+        let after = m.cells.values().next().unwrap().evidence;
+        assert!((after / before - 0.5f64.powf(10.0 / p.out_half_life_s)).abs() < 1e-9, "{before} → {after}");
+        assert_eq!(m.occupied().len(), 1, "still there after 10 s standing beside it");
+        // driving on 1.5 m (it stays out of view, beside and then behind) halves it once more
+        let v = BodyVelocity { v: 1.5, omega: 0.0 };
+        step(&mut m, v, 1.0, &[]);
+        let driven = m.cells.values().next().unwrap().evidence;
+        let k = 0.5f64.powf(1.5 / p.out_half_life_m + 1.0 / p.out_half_life_s);
+        assert!((driven / after - k).abs() < 1e-9, "{after} → {driven}");
+        assert!(m.occupied().is_empty());
+    }
+
+    #[test]
+    fn the_band_ahead_is_free_up_to_the_nearest_cell_in_it() {
+        let mut m = memory();
+        for _ in 0..2 {
+            step(&mut m, STILL, 0.1, &[pt(0.8, 0.15), pt(0.5, 0.45)]);
+        }
+        // the cell 0.15 m left (centre 0.85, 0.15) is in a 0.23 m band; the one 0.45 m left is not
+        assert!((m.free_width(0.0, 0.23, 2.0) - 0.85).abs() < 1e-9);
+        assert!((m.free_width(0.0, 0.1, 2.0) - 2.0).abs() < 1e-9);
+        assert!((m.free_width(0.0, 0.5, 2.0) - 0.55).abs() < 1e-9);
     }
 
     #[test]

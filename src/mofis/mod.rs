@@ -15,6 +15,7 @@
 //! and the [`Limiter`] clamps the result to the configured speed, turn-rate and acceleration
 //! limits. Without perception ([`Mofis::fallback`]) the set-point is an immediate stop.
 
+pub mod escape;
 pub mod memory;
 pub mod stall;
 
@@ -58,6 +59,15 @@ pub struct MofisParams {
     /// `[mofis.stall]`: turning away when the wheels push against something unseen
     /// ([`stall`]).
     pub stall: stall::StallParams,
+    /// `[mofis.escape]`: turning to a free heading after a standstill ([`escape`]).
+    pub escape: escape::EscapeParams,
+    /// The stopping gate: the forward speed is at most the speed from which the robot stops,
+    /// braking at `stop_decel_mps2`, `stop_margin_m` short of the nearest occupied cell in a band
+    /// `robot_radius_m + stop_margin_m` either side of its heading in the obstacle memory
+    /// ([`Ahead::stop_speed_mps`]), m ...
+    pub stop_margin_m: f64,
+    /// ... m/s² (below `control.max_linear_decel`, so the limiter can follow it).
+    pub stop_decel_mps2: f64,
 }
 
 impl Default for MofisParams {
@@ -72,6 +82,9 @@ impl Default for MofisParams {
             blind_turn_stop_rad: 0.6,
             memory: memory::MemoryParams::default(),
             stall: stall::StallParams::default(),
+            escape: escape::EscapeParams::default(),
+            stop_margin_m: 0.05,
+            stop_decel_mps2: 0.8,
         }
     }
 }
@@ -100,10 +113,17 @@ impl MofisParams {
         if !(self.blind_turn_stop_rad.is_finite() && self.blind_turn_stop_rad > self.blind_turn_start_rad) {
             return bad("blind_turn_stop_rad", "must be an angle in rad greater than blind_turn_start_rad");
         }
+        if !(self.stop_margin_m.is_finite() && (0.0..=0.5).contains(&self.stop_margin_m)) {
+            return bad("stop_margin_m", "must be in [0, 0.5] m");
+        }
+        if !(self.stop_decel_mps2.is_finite() && self.stop_decel_mps2 > 0.0) {
+            return bad("stop_decel_mps2", "must be a positive deceleration in m/s²");
+        }
         if let Err((field, problem)) = self.memory.check() {
             return bad(&format!("memory.{field}"), problem);
         }
-        self.stall.validate()
+        self.stall.validate()?;
+        self.escape.validate()
     }
 }
 
@@ -145,6 +165,22 @@ pub struct MofisOutput {
     pub fused: BodyVelocity,
     /// The set-point to send: `fused` after the limiter.
     pub setpoint: BodyVelocity,
+}
+
+/// The way ahead as the obstacle memory has it ([`Mofis::step_sides`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ahead {
+    /// The free distance ahead, m (the `front_distance` input of the avoidance rule base).
+    pub front_m: f64,
+    /// The stopping gate: the fastest forward speed from which the robot still stops short of
+    /// the nearest occupied cell in its way, m/s ([`stop_speed`]).
+    pub stop_speed_mps: f64,
+}
+
+/// The speed (m/s) from which a robot braking at `decel_mps2` stops within `free_m` metres:
+/// √(2 · decel · free), 0 when nothing is free.
+pub fn stop_speed(free_m: f64, decel_mps2: f64) -> f64 {
+    (2.0 * decel_mps2 * free_m.max(0.0)).sqrt()
 }
 
 /// The rule bases, their variable ids, and the limiter state.
@@ -317,8 +353,9 @@ impl Mofis {
     /// [`Mofis::step`] with a second obstacle on the other side of the heading and the distance
     /// ahead measured otherwise.
     ///
-    /// `front_m`: the free distance ahead (the obstacle memory's free path, m) instead of the
-    /// TPO's wall/corner distance; `None` = from the TPO.
+    /// `ahead`: what the obstacle memory says about the way ahead: the free distance fed to the
+    /// rule bases instead of the TPO's wall/corner distance, and the stopping gate's speed
+    /// limit; `None` = the distance from the TPO and no gate.
     ///
     /// `other`: the second obstacle (`perception.obstacle` is the nearer). Each is avoided by
     /// the rule bases on its own, and their turns are averaged weighted by fusion weight ÷
@@ -330,12 +367,12 @@ impl Mofis {
         &mut self,
         perception: &Perception,
         other: Option<&Obstacle>,
-        front_m: Option<f64>,
+        ahead: Option<Ahead>,
         goal: &Goal,
         dt: f64,
     ) -> Result<MofisOutput, MofisError> {
         let mut inputs = self.inputs(perception);
-        if let Some(f) = front_m.filter(|f| f.is_finite()) {
+        if let Some(f) = ahead.map(|a| a.front_m).filter(|f| f.is_finite()) {
             inputs[2] = f.clamp(0.0, self.params.sensing_range_m);
         }
         let [dist, mut bearing, front] = inputs;
@@ -377,7 +414,8 @@ impl Mofis {
                 true => goal.velocity,
                 false => {
                     let off = goal.angle_rad.abs().max(omega.abs() / self.params.heading_gain);
-                    goal.velocity * avoidance.speed * self.look_factor(off)
+                    let cap = ahead.map_or(f64::INFINITY, |a| a.stop_speed_mps);
+                    (goal.velocity * avoidance.speed * self.look_factor(off)).min(cap)
                 }
             };
             BodyVelocity { v, omega }

@@ -178,6 +178,8 @@ pub struct SimSummary {
     pub failsafe_stops: u64,
     /// Times the robot found itself pushing against something and turned away.
     pub stall_recoveries: u32,
+    /// Standstills that ended with a turn to a free heading ([`crate::mofis::escape`]).
+    pub escapes: u32,
     /// The first contact, if any: when, where, and with what.
     pub first_contact: Option<Contact>,
     /// Frames in which OFFIS saw each TPO class, in `TpoShape::ALL` order (wall, corner, door,
@@ -591,6 +593,7 @@ pub async fn run(
         frames,
         failsafe_stops,
         stall_recoveries: pipeline.stall_recoveries(),
+        escapes: pipeline.escapes(),
         first_contact,
         tpo_frames,
         doors_matched,
