@@ -26,8 +26,7 @@ use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
 use crate::mofis::escape::Escape;
 use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::stall::{Manoeuvre, StallRecovery};
-use crate::mofis::{Ahead, stop_speed};
-use crate::mofis::{Mofis, MofisError, MofisOutput, SpotTurn};
+use crate::mofis::{Ahead, Mofis, MofisError, MofisOutput, SpotTurn, stop_speed};
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
@@ -186,8 +185,6 @@ pub struct Pipeline {
     last_setpoint: BodyVelocity,
     spot_turn: SpotTurn,
     escape: Escape,
-    /// How far an escape heading's path must be free, m.
-    escape_lookahead: f64,
     /// The stopping gate's margin, m, and deceleration, m/s² ([`crate::mofis::Ahead`]).
     stop_gate: (f64, f64),
 }
@@ -216,7 +213,6 @@ impl Pipeline {
             last_setpoint: BodyVelocity::ZERO,
             spot_turn: SpotTurn::new(&cfg.mofis),
             escape: Escape::new(cfg.mofis.escape),
-            escape_lookahead: cfg.mofis.escape.lookahead_m,
             stop_gate: (cfg.mofis.stop_margin_m, cfg.mofis.stop_decel_mps2),
             flow,
             backend,
@@ -391,7 +387,7 @@ impl Pipeline {
             None => {
                 let lane = self.pafsis().and_then(Pafsis::lane);
                 let (memory, yaw) = (&self.memory, self.memory.yaw());
-                let look = self.escape_lookahead;
+                let look = self.escape.params().lookahead_m;
                 self.escape.apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| {
                     let seen = memory.free_distance(h, look);
                     lane.as_ref().map_or(seen, |l| seen.min(memory.lane_free_distance(l, h, look)))

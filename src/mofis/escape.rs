@@ -114,6 +114,10 @@ impl Escape {
         Self { params, still_s: 0.0, active: None, escapes: 0 }
     }
 
+    pub fn params(&self) -> &EscapeParams {
+        &self.params
+    }
+
     /// How many escapes started.
     pub fn escapes(&self) -> u32 {
         self.escapes
