@@ -381,11 +381,12 @@ impl Pipeline {
             _ => goal,
         };
         let lookahead = STEER_LOOKAHEAD_M.min(horizon);
+        // the corridor from the map, for the escape and the steering
+        let lane = self.pafsis().and_then(Pafsis::lane);
         // standing still too long: turn to the free heading nearest the goal, round the full
         // circle, and drive off that way (a stall recovery's manoeuvre goes first)
         let goal = match turn_away {
             None => {
-                let lane = self.pafsis().and_then(Pafsis::lane);
                 let (memory, yaw) = (&self.memory, self.memory.yaw());
                 let look = self.escape.params().lookahead_m;
                 self.escape.apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| {
@@ -403,7 +404,6 @@ impl Pipeline {
             true => {
                 let centred = goal.angle_rad
                     + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                let lane = self.pafsis().and_then(Pafsis::lane);
                 let angle_rad = self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD, lane.as_ref());
                 Goal { angle_rad, ..goal }
             }

@@ -61,32 +61,22 @@ impl Default for EscapeParams {
 impl EscapeParams {
     /// Range checks.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |field: &str, problem: &str| {
-            Err(ConfigError::Invalid { field: format!("mofis.escape.{field}"), problem: problem.into() })
-        };
         let pos = |v: f64| v.is_finite() && v > 0.0;
-        if !pos(self.still_mps) {
-            return bad("still_mps", "must be a positive speed in m/s");
+        let checks = [
+            ("still_mps", pos(self.still_mps), "must be a positive speed in m/s"),
+            ("after_s", pos(self.after_s), "must be a positive time in s"),
+            ("lookahead_m", pos(self.lookahead_m), "must be a positive distance in m"),
+            ("step_rad", pos(self.step_rad) && self.step_rad <= 1.0, "must be in (0, 1] rad"),
+            ("drive_m", pos(self.drive_m), "must be a positive distance in m"),
+            ("timeout_s", pos(self.timeout_s), "must be a positive time in s"),
+            ("speed_mps", pos(self.speed_mps), "must be a positive speed in m/s"),
+        ];
+        match checks.into_iter().find(|c| !c.1) {
+            Some((field, _, problem)) => {
+                Err(ConfigError::Invalid { field: format!("mofis.escape.{field}"), problem: problem.into() })
+            }
+            None => Ok(()),
         }
-        if !pos(self.after_s) {
-            return bad("after_s", "must be a positive time in s");
-        }
-        if !pos(self.lookahead_m) {
-            return bad("lookahead_m", "must be a positive distance in m");
-        }
-        if !(pos(self.step_rad) && self.step_rad <= 1.0) {
-            return bad("step_rad", "must be in (0, 1] rad");
-        }
-        if !pos(self.drive_m) {
-            return bad("drive_m", "must be a positive distance in m");
-        }
-        if !pos(self.timeout_s) {
-            return bad("timeout_s", "must be a positive time in s");
-        }
-        if !pos(self.speed_mps) {
-            return bad("speed_mps", "must be a positive speed in m/s");
-        }
-        Ok(())
     }
 }
 
@@ -275,6 +265,15 @@ mod tests {
         let out = e.apply(g, side * 0.5, p.drive_m, dt, free_except(0.0));
         assert!(!e.active());
         assert_eq!(out, g);
+    }
+
+    #[test]
+    fn bad_parameters_are_named() {
+        assert!(EscapeParams::default().validate().is_ok());
+        let bad = EscapeParams { step_rad: 1.5, ..EscapeParams::default() }.validate().unwrap_err();
+        assert!(matches!(&bad, ConfigError::Invalid { field, .. } if field == "mofis.escape.step_rad"), "{bad:?}");
+        let bad = EscapeParams { speed_mps: f64::NAN, ..EscapeParams::default() }.validate().unwrap_err();
+        assert!(matches!(&bad, ConfigError::Invalid { field, .. } if field == "mofis.escape.speed_mps"), "{bad:?}");
     }
 
     #[test]
