@@ -389,10 +389,8 @@ impl Pipeline {
             None => {
                 let (memory, yaw) = (&self.memory, self.memory.yaw());
                 let look = self.escape.params().lookahead_m;
-                self.escape.apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| {
-                    let seen = memory.free_distance(h, look);
-                    lane.as_ref().map_or(seen, |l| seen.min(memory.lane_free_distance(l, h, look)))
-                })
+                self.escape
+                    .apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| memory.free_in_lane(h, look, lane.as_ref()))
             }
             Some(_) => goal,
         };
@@ -418,7 +416,7 @@ impl Pipeline {
             false => free - mp.robot_radius_m,
         };
         // the stopping gate: never faster than the robot can stop short of what is in its way
-        let (margin, decel) = (self.stop_gate.0, self.stop_gate.1);
+        let (margin, decel) = self.stop_gate;
         let in_way = self.memory.free_width(0.0, mp.robot_radius_m + margin, STOP_LOOKAHEAD_M);
         let ahead =
             Ahead { front_m: front.max(0.0), stop_speed_mps: stop_speed(in_way - mp.robot_radius_m - margin, decel) };

@@ -311,11 +311,11 @@ impl ObstacleMemory {
                 // seen through: the camera measured a surface beyond the cell on its bearing, by a
                 // ray that passes over the cell lower than the top of what is remembered there (a
                 // ray to the far wall above a low box says nothing about the box)
-                let through = f > 0.0
-                    && sector(l.atan2(f), half_fov).is_some_and(|k| {
-                        seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
-                    });
-                let out_of_view = f <= 0.0 || sector(l.atan2(f), half_fov).is_none();
+                let in_view = if f > 0.0 { sector(l.atan2(f), half_fov) } else { None };
+                let through = in_view.is_some_and(|k| {
+                    seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
+                });
+                let out_of_view = in_view.is_none();
                 c.evidence *= match (c.contact, through) {
                     (true, _) => k_contact,
                     (false, true) => k_view,
@@ -473,6 +473,14 @@ impl ObstacleMemory {
         exit.clamp(0.0, lookahead_m)
     }
 
+    /// How far the path along `heading` (rad, robot frame) is free, up to `lookahead_m`: of
+    /// occupied cells ([`free_distance`](Self::free_distance)) and, with a `lane`, inside it
+    /// ([`lane_free_distance`](Self::lane_free_distance)).
+    pub fn free_in_lane(&self, heading: f64, lookahead_m: f64, lane: Option<&Lane>) -> f64 {
+        let seen = self.free_distance(heading, lookahead_m);
+        lane.map_or(seen, |l| seen.min(self.lane_free_distance(l, heading, lookahead_m)))
+    }
+
     /// The heading to drive instead of `goal_rad` (both rad, robot frame): `goal_rad` itself when
     /// its path is free for `lookahead_m`, else the candidate within `±max_rad` (steps of
     /// `step_rad`) nearest to the goal whose path is free that far, else the candidate with the
@@ -482,10 +490,7 @@ impl ObstacleMemory {
     /// ([`lane_free_distance`](Self::lane_free_distance)): a doorway, or a wall not yet seen,
     /// is no gap to steer through.
     pub fn steer(&self, goal_rad: f64, lookahead_m: f64, max_rad: f64, step_rad: f64, lane: Option<&Lane>) -> f64 {
-        let free_distance = |h: f64| {
-            let seen = self.free_distance(h, lookahead_m);
-            lane.map_or(seen, |l| seen.min(self.lane_free_distance(l, h, lookahead_m)))
-        };
+        let free_distance = |h: f64| self.free_in_lane(h, lookahead_m, lane);
         if free_distance(goal_rad) >= lookahead_m {
             return goal_rad;
         }
