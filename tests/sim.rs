@@ -101,7 +101,11 @@ fn summary_json_starts_with_the_contract_fields() {
         fps: 30.0,
         noise: 2.0,
         pose_hint: false,
-        quality: sim::quality::QualitySummary { points_range_ok: Some(0.8), cells_ghost: None },
+        quality: sim::quality::QualitySummary {
+            points_range_ok: Some(0.8),
+            cells_ghost: None,
+            obstacles_held: Some(0.5),
+        },
     };
     let line = s.to_json_line();
     assert!(
@@ -113,6 +117,7 @@ fn summary_json_starts_with_the_contract_fields() {
     assert_eq!(v["status"], "arrived");
     assert_eq!(v["seed"], 3);
     assert_eq!((v["points_range_ok"].as_f64(), v["cells_ghost"].is_null()), (Some(0.8), true), "flattened: {line}");
+    assert_eq!(v["obstacles_held"].as_f64(), Some(0.5), "flattened: {line}");
 }
 
 #[test]

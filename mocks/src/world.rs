@@ -615,6 +615,12 @@ impl World {
         best
     }
 
+    /// Distance from plan point (x, y) to each obstacle's footprint (boxes, then cylinders, in
+    /// the world's order); 0 inside one. For scoring perception per obstacle.
+    pub fn obstacle_distances(&self, x: f64, y: f64) -> Vec<f64> {
+        self.obstacle_shapes().iter().map(|s| s.distance_to_point([x, y])).collect()
+    }
+
     /// A copy with the obstacles inside the [`RandomSpec`] lane replaced by `boxes` boxes and
     /// `people` cylinders placed at random (deterministic for a `seed`) by the rule documented on
     /// [`RandomSpec`]. Obstacles outside the lane stay.

@@ -94,9 +94,15 @@ pub struct Aggregate {
     pub wall_s: f64,
     pub realtime_factor: f64,
     pub failed_seeds: Vec<u64>,
-    /// Means over the runs of `points_range_ok` and `cells_ghost` (`sim::quality`).
+    /// 95 % (Clopper–Pearson) intervals of the per-run rates of reaching the goal and of a run
+    /// with a contact (`sim::stats`): what the counts above say about the next seeds.
+    pub success_rate_ci95: [f64; 2],
+    pub collision_run_rate_ci95: [f64; 2],
+    /// Means over the runs of `points_range_ok`, `cells_ghost` and `obstacles_held`
+    /// (`sim::quality`).
     pub mean_points_range_ok: Option<f64>,
     pub mean_cells_ghost: Option<f64>,
+    pub mean_obstacles_held: Option<f64>,
 }
 
 impl Aggregate {
@@ -106,6 +112,10 @@ impl Aggregate {
         let sim_s = sum(|r| r.time_s);
         let wall_s = sum(|r| r.wall_s);
         let r3 = |x: f64| (x * 1000.0).round() / 1000.0;
+        let ci95 = |k: usize| {
+            let (lo, hi) = crate::sim::stats::clopper_pearson(k as u64, runs.len() as u64, 0.95);
+            [r3(lo), r3(hi)]
+        };
         let mean_of = |f: fn(&SimSummary) -> Option<f64>| {
             let v: Vec<f64> = runs.iter().filter_map(f).collect();
             (!v.is_empty()).then(|| r3(v.iter().sum::<f64>() / v.len() as f64))
@@ -126,8 +136,11 @@ impl Aggregate {
             wall_s: r3(wall_s),
             realtime_factor: r3(sim_s / wall_s.max(1e-9)),
             failed_seeds: runs.iter().filter(|r| !r.reached || r.collisions > 0).map(|r| r.seed).collect(),
+            success_rate_ci95: ci95(runs.iter().filter(|r| r.reached).count()),
+            collision_run_rate_ci95: ci95(runs.iter().filter(|r| r.collisions > 0).count()),
             mean_points_range_ok: mean_of(|r| r.quality.points_range_ok),
             mean_cells_ghost: mean_of(|r| r.quality.cells_ghost),
+            mean_obstacles_held: mean_of(|r| r.quality.obstacles_held),
         }
     }
 }

@@ -98,6 +98,10 @@ pub struct MemoryParams {
     pub min_radial_px: f64,
     /// ... and tangential flow at most this fraction of the radial flow.
     pub max_tangential: f64,
+    /// A point votes for its cell in proportion to its radial flow up to this, pixels (a cell's
+    /// vote in a step is the sum over its points, at most 1): the depth from a weak flow is the
+    /// least certain, and a lone weak point is how a phantom cell starts. 0: every point votes 1.
+    pub vote_full_radial_px: f64,
     /// ... and turned slower than this, rad/s: the odometry's yaw-rate error, left in the flow
     /// by the de-rotation, grows with the turn rate.
     pub max_turn_rate: f64,
@@ -130,6 +134,7 @@ impl Default for MemoryParams {
             min_range_m: 0.22,
             min_radial_px: 1.2,
             max_tangential: 0.5,
+            vote_full_radial_px: 0.0,
             max_turn_rate: 0.3,
             max_turn_change: 0.05,
         }
@@ -161,6 +166,7 @@ impl MemoryParams {
             ("min_travel_m", nonneg(self.min_travel_m), "must be a distance ≥ 0 in m"),
             ("min_radial_px", nonneg(self.min_radial_px), "must be ≥ 0 pixels"),
             ("max_tangential", pos(self.max_tangential), "must be a positive fraction"),
+            ("vote_full_radial_px", nonneg(self.vote_full_radial_px), "must be ≥ 0 pixels (0: off)"),
             ("min_range_m", nonneg(self.min_range_m), "must be a distance ≥ 0 in m"),
             ("max_turn_rate", pos(self.max_turn_rate), "must be a positive turn rate in rad/s"),
             ("max_turn_change", pos(self.max_turn_change), "must be a positive turn rate in rad/s"),
@@ -190,8 +196,8 @@ pub struct ObstacleMemory {
     camera_height_m: f64,
     pose: Pose,
     cells: BTreeMap<(i32, i32), Cell>,
-    /// Cells voted for this step, with the height of the highest point in each, m.
-    touched: Vec<((i32, i32), f64)>,
+    /// Cells voted for this step, per point: the height of the point, m, and its vote.
+    touched: Vec<((i32, i32), f64, f64)>,
     /// The points measured this step per bearing sector: (range, height above the floor), m.
     seen: Vec<Vec<(f64, f64)>>,
 }
@@ -326,20 +332,29 @@ impl ObstacleMemory {
             });
         }
         self.touched.clear();
+        let full_px = self.params.vote_full_radial_px;
         for pt in points.iter().filter(|_| measurable) {
             let range = pt.forward.hypot(pt.left);
             if !(range >= self.params.min_range_m && range <= self.params.max_range_m) {
                 continue;
             }
             let key = self.cell_at(pt.forward, pt.left);
-            self.touched.push((key, pt.up));
+            let vote = if full_px > 0.0 { (pt.radial_px / full_px).clamp(0.0, 1.0) } else { 1.0 };
+            self.touched.push((key, pt.up, vote));
         }
-        // one vote per cell, with its highest point
-        self.touched.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)));
-        self.touched.dedup_by_key(|t| t.0);
-        for &(key, up) in &self.touched {
+        // one vote per cell (its points' votes summed, at most 1), with its highest point; a
+        // total order, so the sums are added in the same order on every run
+        self.touched.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)).then(a.2.total_cmp(&b.2)));
+        let mut k = 0;
+        while k < self.touched.len() {
+            let (key, up, _) = self.touched[k];
+            let mut vote = 0.0;
+            while k < self.touched.len() && self.touched[k].0 == key {
+                vote += self.touched[k].2;
+                k += 1;
+            }
             let c = self.cells.entry(key).or_insert(Cell { evidence: 0.0, contact: false, top_m: up });
-            c.evidence = (c.evidence + 1.0).min(self.params.max_evidence);
+            c.evidence = (c.evidence + vote.min(1.0)).min(self.params.max_evidence);
             c.top_m = c.top_m.max(up);
         }
     }
@@ -584,7 +599,7 @@ mod tests {
     use super::*;
 
     fn pt(forward: f64, left: f64) -> SurfacePoint {
-        SurfacePoint { forward, left, up: 0.5 }
+        SurfacePoint { forward, left, up: 0.5, radial_px: 3.0 }
     }
 
     /// The default memory, except that standing still counts as measurable (so the geometry
@@ -613,6 +628,30 @@ mod tests {
         // cell centre (1.05, 0.05): its range minus the 0.18 m radius
         assert!((o.distance_m.unwrap() - (1.05f64.hypot(0.05) - 0.18)).abs() < 1e-9, "{o:?}");
         assert!((o.bearing_rad.unwrap() - 0.05f64.atan2(1.05)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn weak_flow_votes_less_and_a_cell_of_many_points_votes_once() {
+        let base = MemoryParams { min_travel_m: 0.0, ..MemoryParams::default() };
+        let weak = |px: f64| SurfacePoint { radial_px: px, ..pt(1.0, 0.05) };
+        let evidence_after = |params: MemoryParams, frame: &[SurfacePoint], frames: usize| {
+            let mut m = ObstacleMemory::new(params, 26.7f64.to_radians(), 0.4);
+            for _ in 0..frames {
+                // dt 0: no decay, the evidence is the sum of the votes
+                m.update(STILL, 0.0, frame, true);
+            }
+            m.cells.values().map(|c| c.evidence).sum::<f64>()
+        };
+        let weighted = MemoryParams { vote_full_radial_px: 2.5, ..base };
+        // off: any point votes 1 per frame, two frames make an obstacle
+        assert_eq!(evidence_after(base, &[weak(1.25)], 2), 2.0);
+        // on: a lone 1.25 px point votes 0.5, so the same two frames do not ...
+        assert!((evidence_after(weighted, &[weak(1.25)], 2) - 1.0).abs() < 1e-12);
+        // ... three of them do (occupied at 1.5)
+        assert!((evidence_after(weighted, &[weak(1.25)], 3) - 1.5).abs() < 1e-12);
+        // a strong point votes 1, and three weak points in one cell vote 1 together, not 1.5
+        assert_eq!(evidence_after(weighted, &[weak(4.0)], 1), 1.0);
+        assert_eq!(evidence_after(weighted, &[weak(1.25), weak(1.25), weak(1.25)], 1), 1.0);
     }
 
     #[test]
@@ -956,12 +995,12 @@ mod tests {
         // measured (the box's flow is too weak to locate, say)
         let remains = |top: f64, wall_up: f64| {
             let mut m = memory();
-            let b = |up| SurfacePoint { forward: 1.0, left: 0.0, up };
+            let b = |up| SurfacePoint { forward: 1.0, left: 0.0, up, radial_px: 3.0 };
             for _ in 0..4 {
                 step(&mut m, STILL, 0.1, &[b(0.1), b(top)]);
             }
             for _ in 0..10 {
-                step(&mut m, STILL, 0.1, &[SurfacePoint { forward: 3.0, left: 0.15, up: wall_up }]);
+                step(&mut m, STILL, 0.1, &[SurfacePoint { forward: 3.0, left: 0.15, up: wall_up, radial_px: 3.0 }]);
             }
             m.occupied().iter().any(|c| c[0] < 2.0)
         };

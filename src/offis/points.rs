@@ -20,6 +20,9 @@ pub struct SurfacePoint {
     pub left: f64,
     /// Height above the floor, m.
     pub up: f64,
+    /// The block's radial flow, pixels per frame interval: the depth of a point from `ρ` px is
+    /// off by about `σ/ρ` for a matching noise `σ`, so this is how much the point is worth.
+    pub radial_px: f64,
 }
 
 impl Offis {
@@ -55,7 +58,12 @@ impl Offis {
                 && l.radial_px >= p.reliable_radial_px.max(min_radial_px)
                 && l.tangential_px <= max_tangential * l.radial_px
             {
-                out.push(SurfacePoint { forward: l.forward + mount_m[0], left: l.left + mount_m[1], up });
+                out.push(SurfacePoint {
+                    forward: l.forward + mount_m[0],
+                    left: l.left + mount_m[1],
+                    up,
+                    radial_px: l.radial_px,
+                });
             }
         }
     }

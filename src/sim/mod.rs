@@ -32,6 +32,7 @@
 //! collisions, and to score the run.
 
 pub mod quality;
+pub mod stats;
 
 use crate::config::Config;
 use crate::logging::record::{self, RecordImage};

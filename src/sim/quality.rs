@@ -9,6 +9,10 @@
 //! - **Occupied cells** of the obstacle memory within [`CELL_REACH_M`]: a cell is a *ghost* when
 //!   its centre, placed with the true pose, is farther than [`GHOST_M`] from every surface (the
 //!   odometry's drift counts against the memory too).
+//! - **Obstacles held**: in each step where the robot's origin is within [`HELD_NEAR_M`] of an
+//!   obstacle (box, person), whether the memory holds an occupied cell within [`GHOST_M`] of
+//!   that obstacle. The faces a robot passes leave the camera's view; this says how often the
+//!   memory still has them when it matters.
 
 use crate::offis::points::SurfacePoint;
 use mocks::{Pose, World};
@@ -22,6 +26,9 @@ pub const POINT_REACH_M: f64 = 4.0;
 pub const CELL_REACH_M: f64 = 2.0;
 /// A cell centre farther than this from every surface is a ghost, m (a cell is 0.1 m).
 pub const GHOST_M: f64 = 0.15;
+/// An obstacle counts for [`Quality`]'s held score while the robot's origin is this near, m (the
+/// robot's radius, 0.18 m, plus half a metre).
+pub const HELD_NEAR_M: f64 = 0.68;
 
 /// Counts over a run; the fractions go into the summary.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -30,6 +37,8 @@ pub struct Quality {
     points_good: u64,
     cells: u64,
     ghosts: u64,
+    near: u64,
+    held: u64,
 }
 
 /// The fractions, for the JSON summary (`None` when nothing was scored).
@@ -39,6 +48,9 @@ pub struct QualitySummary {
     pub points_range_ok: Option<f64>,
     /// Occupied cells within 2 m farther than 0.15 m from every surface (cell-frames).
     pub cells_ghost: Option<f64>,
+    /// Steps with an obstacle within 0.68 m of the robot's origin in which the memory held an
+    /// occupied cell on it (obstacle-steps).
+    pub obstacles_held: Option<f64>,
 }
 
 impl Quality {
@@ -60,6 +72,18 @@ impl Quality {
             self.cells += 1;
             self.ghosts += u64::from(world.clearance(cx, cy).distance_m > GHOST_M);
         }
+        let near: Vec<usize> = (world.obstacle_distances(pose.x, pose.y).iter().enumerate())
+            .filter(|(_, d)| **d <= HELD_NEAR_M)
+            .map(|(i, _)| i)
+            .collect();
+        if !near.is_empty() {
+            let on_cells: Vec<Vec<f64>> =
+                cells.iter().map(|c| pose.transform(*c)).map(|[x, y]| world.obstacle_distances(x, y)).collect();
+            for i in near {
+                self.near += 1;
+                self.held += u64::from(on_cells.iter().any(|d| d[i] <= GHOST_M));
+            }
+        }
     }
 
     pub fn summary(&self) -> QualitySummary {
@@ -67,6 +91,7 @@ impl Quality {
         QualitySummary {
             points_range_ok: frac(self.points_good, self.points),
             cells_ghost: frac(self.ghosts, self.cells),
+            obstacles_held: frac(self.held, self.near),
         }
     }
 }
@@ -99,13 +124,33 @@ mod tests {
         let world = mocks::scene::corridor(2.0, 10.0).world;
         let pose = Pose::new(2.0, 0.0, 0.0);
         assert!((world.clearance(pose.x, pose.y).distance_m - 1.0).abs() < 1e-9);
-        let wall = |left: f64| SurfacePoint { forward: 0.0, left, up: 0.5 };
+        let wall = |left: f64| SurfacePoint { forward: 0.0, left, up: 0.5, radial_px: 3.0 };
         let mut q = Quality::default();
         // 1.0 m to the left wall: 1.05 is good, 1.3 is not
         q.observe(&world, &pose, &[wall(1.05), wall(1.3)], &[[0.0, 0.95], [0.5, 0.0]]);
         let s = q.summary();
         assert_eq!(s.points_range_ok, Some(0.5), "{s:?}");
         assert_eq!(s.cells_ghost, Some(0.5), "the cell in mid-corridor is a ghost: {s:?}");
-        assert_eq!(Quality::default().summary(), QualitySummary { points_range_ok: None, cells_ghost: None });
+        assert_eq!(
+            Quality::default().summary(),
+            QualitySummary { points_range_ok: None, cells_ghost: None, obstacles_held: None }
+        );
+    }
+
+    #[test]
+    fn an_obstacle_beside_the_robot_is_held_while_a_cell_lies_on_it() {
+        // a person (r 0.3 m) 0.6 m left of the robot's centre in the corridor: within 0.68 m
+        let mut world = mocks::scene::corridor(2.0, 10.0).world;
+        world.cylinders.push(mocks::world::Cylinder { name: "p".into(), center: [2.0, 0.6], radius: 0.3, height: 1.7 });
+        let pose = Pose::new(2.0, 0.0, 0.0);
+        let mut q = Quality::default();
+        // a cell on its near face (0.3 m left), then only a cell in mid-corridor ahead
+        q.observe(&world, &pose, &[], &[[0.0, 0.32]]);
+        q.observe(&world, &pose, &[], &[[0.5, -0.4]]);
+        assert_eq!(q.summary().obstacles_held, Some(0.5), "{:?}", q.summary());
+        // 1 m away the person does not count
+        let mut far = Quality::default();
+        far.observe(&world, &Pose::new(2.0, -0.5, 0.0), &[], &[]);
+        assert_eq!(far.summary().obstacles_held, None);
     }
 }
