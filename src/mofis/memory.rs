@@ -8,10 +8,10 @@
 //! nothing but the flow's located points and the odometry:
 //!
 //! - the robot's pose in its odometry frame is integrated from `(v, ω)` every step;
-//! - each step's points ([`crate::offis::points`]) vote once per `cell_m` cell, adding to the
-//!   cell's evidence (capped at `max_evidence`) the sum of its points' votes, at most 1: a
-//!   point votes in proportion to its radial flow up to `vote_full_radial_px` (a depth from
-//!   weak flow is the least certain);
+//! - each step's points ([`crate::offis::points`]) vote once per `cell_m` cell (several blocks in
+//!   one cell count once), adding 1 to the cell's evidence (capped at `max_evidence`), or, with
+//!   `vote_full_radial_px` set, the sum of its points' radial flow / `vote_full_radial_px`, at
+//!   most 1 (a depth from weak flow is the least certain);
 //! - evidence decays with a half-life of `half_life_view_s` where the camera *sees through* the
 //!   cell now (a surface was measured farther away on the cell's bearing, by a ray that passes
 //!   over the cell lower than the top of what was seen in it: the cell is free),
@@ -111,9 +111,9 @@ pub struct MemoryParams {
     /// vote in a step is the sum over its points, at most 1): the depth from `ρ` px of flow is
     /// off by about `σ/ρ`, and a lone weak point is how a phantom cell starts (on seeds 3 and
     /// 16, 11–24 % of the points of 1.2–2 px fell in free space, under 6 % of those from
-    /// 2.5 px). 0: every point votes 1. At 2.5 px the occupied cells in free space fell from
-    /// 20 % to 17.5 %, and runs with a contact from 6 to 3 in 80 missions (README, tenth
-    /// session).
+    /// 2.5 px). 0 (the default): every point votes 1. At 2.5 px, over seeds 0..99, the occupied
+    /// cells in free space fell from 20 % to 17.5 % and the missions were 7 % faster, but as
+    /// many runs touched something and fewer arrived (README, tenth session), so it is off.
     pub vote_full_radial_px: f64,
 }
 
@@ -140,7 +140,7 @@ impl Default for MemoryParams {
             min_range_m: 0.22,
             min_radial_px: 1.2,
             max_tangential: 0.5,
-            vote_full_radial_px: 2.5,
+            vote_full_radial_px: 0.0,
             max_turn_rate: 0.3,
             max_turn_change: 0.05,
         }
