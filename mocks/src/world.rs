@@ -615,10 +615,11 @@ impl World {
         best
     }
 
-    /// Distance from plan point (x, y) to each obstacle's footprint (boxes, then cylinders, in
+    /// For each plan point, the distance to each obstacle's footprint (boxes, then cylinders, in
     /// the world's order); 0 inside one. For scoring perception per obstacle.
-    pub fn obstacle_distances(&self, x: f64, y: f64) -> Vec<f64> {
-        self.obstacle_shapes().iter().map(|s| s.distance_to_point([x, y])).collect()
+    pub fn obstacle_distances(&self, points: &[[f64; 2]]) -> Vec<Vec<f64>> {
+        let shapes = self.obstacle_shapes();
+        points.iter().map(|p| shapes.iter().map(|s| s.distance_to_point(*p)).collect()).collect()
     }
 
     /// A copy with the obstacles inside the [`RandomSpec`] lane replaced by `boxes` boxes and

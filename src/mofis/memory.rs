@@ -356,14 +356,9 @@ impl ObstacleMemory {
         // one vote per cell (its points' votes summed, at most 1), with its highest point; a
         // total order, so the sums are added in the same order on every run
         self.touched.sort_unstable_by(|a, b| a.0.cmp(&b.0).then(b.1.total_cmp(&a.1)).then(a.2.total_cmp(&b.2)));
-        let mut k = 0;
-        while k < self.touched.len() {
-            let (key, up, _) = self.touched[k];
-            let mut vote = 0.0;
-            while k < self.touched.len() && self.touched[k].0 == key {
-                vote += self.touched[k].2;
-                k += 1;
-            }
+        for cell in self.touched.chunk_by(|a, b| a.0 == b.0) {
+            let (key, up, _) = cell[0];
+            let vote: f64 = cell.iter().map(|t| t.2).sum();
             let c = self.cells.entry(key).or_insert(Cell { evidence: 0.0, contact: false, top_m: up });
             c.evidence = (c.evidence + vote.min(1.0)).min(self.params.max_evidence);
             c.top_m = c.top_m.max(up);

@@ -72,17 +72,13 @@ impl Quality {
             self.cells += 1;
             self.ghosts += u64::from(world.clearance(cx, cy).distance_m > GHOST_M);
         }
-        let near: Vec<usize> = (world.obstacle_distances(pose.x, pose.y).iter().enumerate())
-            .filter(|(_, d)| **d <= HELD_NEAR_M)
-            .map(|(i, _)| i)
-            .collect();
-        if !near.is_empty() {
-            let on_cells: Vec<Vec<f64>> =
-                cells.iter().map(|c| pose.transform(*c)).map(|[x, y]| world.obstacle_distances(x, y)).collect();
-            for i in near {
-                self.near += 1;
-                self.held += u64::from(on_cells.iter().any(|d| d[i] <= GHOST_M));
-            }
+        // the robot first, then the occupied cells, placed with the true pose
+        let at: Vec<[f64; 2]> =
+            std::iter::once([pose.x, pose.y]).chain(cells.iter().map(|c| pose.transform(*c))).collect();
+        let d = world.obstacle_distances(&at);
+        for (i, _) in d[0].iter().enumerate().filter(|(_, d)| **d <= HELD_NEAR_M) {
+            self.near += 1;
+            self.held += u64::from(d[1..].iter().any(|cell| cell[i] <= GHOST_M));
         }
     }
 
