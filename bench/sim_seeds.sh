@@ -6,7 +6,8 @@
 #
 #   bench/sim_seeds.sh            # seeds 0..20
 #   SEEDS=0..5 bench/sim_seeds.sh --noise 0
+#   SEEDS=0..100 JOBS=8 bench/sim_seeds.sh   # 8 missions at a time (default: one per CPU core)
 set -eu
 cd "$(dirname "$0")/.."
 cargo build --release --quiet
-exec "${CARGO_TARGET_DIR:-target}/release/flownav" sim --seeds "${SEEDS:-0..20}" --no-log --quiet "$@"
+exec "${CARGO_TARGET_DIR:-target}/release/flownav" sim --seeds "${SEEDS:-0..20}" --jobs "${JOBS:-$(nproc 2>/dev/null || echo 1)}" --no-log --quiet "$@"

@@ -34,6 +34,12 @@ pub struct Args {
     /// Run one mission per seed in A..B (B excluded) and print an aggregate line last.
     #[arg(long, value_name = "A..B", value_parser = parse_range)]
     pub seeds: Option<(u64, u64)>,
+    /// With --seeds: run this many missions at a time (about one CPU core each). Every run is
+    /// deterministic, so the summaries are those of one at a time, printed in seed order; only
+    /// `wall_s` and `realtime_factor` depend on it.
+    #[arg(long, default_value_t = 1, value_name = "N", requires = "seeds",
+          value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub jobs: u32,
     /// Sensor noise, standard deviation in grey levels.
     #[arg(long, default_value_t = 2.0, value_name = "SIGMA")]
     pub noise: f64,
@@ -180,24 +186,73 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         (None, false, false) => Some(PathBuf::from("logs")),
         _ => None,
     };
-    let rt = tokio::runtime::Builder::new_multi_thread()
+    let job =
+        SeedJob { args: &args, world: &world, map: &map, mission: &mission, config: &config, calib: &calib, log_dir };
+    let results = match args.jobs {
+        1 => {
+            let rt = runtime()?;
+            let mut results = Vec::new();
+            for seed in &seeds {
+                let summary = job.run(&rt, *seed, "")?;
+                print_summary(&summary)?;
+                results.push(summary);
+            }
+            results
+        }
+        n => run_parallel(&job, &seeds, n as usize)?,
+    };
+    if args.seeds.is_some() {
+        let agg = Aggregate::of(&results);
+        let mut out = std::io::stdout().lock();
+        writeln!(out, "{}", serde_json::to_string(&agg)?)?;
+    }
+    Ok(())
+}
+
+/// The tokio runtime one mission runs on (the simulated base's pty and the pipeline).
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
-        .context("starting the tokio runtime")?;
-    let mut results = Vec::new();
-    for seed in &seeds {
+        .context("starting the tokio runtime")
+}
+
+fn print_summary(summary: &SimSummary) -> anyhow::Result<()> {
+    let mut out = std::io::stdout().lock();
+    writeln!(out, "{}", summary.to_json_line())?;
+    out.flush()?;
+    Ok(())
+}
+
+/// What every mission of a `flownav sim` call shares.
+struct SeedJob<'a> {
+    args: &'a Args,
+    world: &'a World,
+    map: &'a TopoMap,
+    mission: &'a Mission,
+    config: &'a crate::config::Config,
+    calib: &'a Calibration,
+    log_dir: Option<PathBuf>,
+}
+
+impl SeedJob<'_> {
+    /// One mission: the world for `seed`, the run, its log; progress lines on stderr start with
+    /// `tag`.
+    fn run(&self, rt: &tokio::runtime::Runtime, seed: Option<u64>, tag: &str) -> anyhow::Result<SimSummary> {
+        let args = self.args;
         let world = match seed {
-            Some(s) if world.random.is_some() => {
-                world.with_random_obstacles(*s).with_context(|| format!("placing random obstacles for seed {s}"))?
+            Some(s) if self.world.random.is_some() => {
+                self.world.with_random_obstacles(s).with_context(|| format!("placing random obstacles for seed {s}"))?
             }
             Some(_) => {
                 tracing::warn!("the world has no [random] section: --seed only seeds the noise");
-                world.clone()
+                self.world.clone()
             }
-            None => world.clone(),
+            None => self.world.clone(),
         };
-        let mut setup = SimSetup::new(world, map.clone(), mission.clone(), config.clone(), calib.clone());
+        let mut setup =
+            SimSetup::new(world, self.map.clone(), self.mission.clone(), self.config.clone(), self.calib.clone());
         setup.fps = args.fps;
         setup.noise_sigma = args.noise;
         setup.seed = seed.unwrap_or(0);
@@ -206,7 +261,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         if !args.quiet {
             let start = setup.start_pose()?;
             eprintln!(
-                "flownav sim: mission {} on world {:?} (seed {}), {}x{} at {} fps, start ({:.2}, {:.2}, {:.0}°)",
+                "{tag}flownav sim: mission {} on world {:?} (seed {}), {}x{} at {} fps, start ({:.2}, {:.2}, {:.0}°)",
                 setup.mission,
                 setup.world.name,
                 seed.map_or("none (the file's obstacles)".to_string(), |s| s.to_string()),
@@ -217,13 +272,11 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
                 start.y,
                 start.yaw.to_degrees()
             );
-        }
-        if !args.quiet {
             let nav =
                 crate::pafsis::Pafsis::new(setup.map.clone(), setup.mission.clone(), setup.config.pafsis.clone())?;
             let legs: Vec<String> = nav.legs().iter().map(|l| l.to_string()).collect();
             eprintln!(
-                "plan: {} ({:.1} m); legs: {}",
+                "{tag}plan: {} ({:.1} m); legs: {}",
                 nav.plan().waypoints.join(" → "),
                 nav.plan().length_m,
                 legs.join("; ")
@@ -244,10 +297,10 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
                 format!("{} cylinder r {:.2} m at ({x:.2}, {y:.2})", c.name, c.radius)
             }));
             if !obstacles.is_empty() {
-                eprintln!("obstacles: {}", obstacles.join("; "));
+                eprintln!("{tag}obstacles: {}", obstacles.join("; "));
             }
         }
-        let log = match &log_dir {
+        let log = match &self.log_dir {
             Some(dir) => {
                 let mission = setup.mission.to_string();
                 let mut options = record::run_options("sim", &setup.config, &setup.calib, Some(&mission), None);
@@ -260,25 +313,65 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         let quiet = args.quiet;
         let summary = rt.block_on(sim::run(&setup, handle.as_ref(), |p| {
             if !quiet {
-                eprintln!("{p}");
+                eprintln!("{tag}{p}");
             }
         }))?;
         if let Some(log) = log {
             let path = log.path().to_path_buf();
             let s = log.close().context("closing the MCAP log")?;
             if !args.quiet {
-                eprintln!("log: {} ({s:?})", path.display());
+                eprintln!("{tag}log: {} ({s:?})", path.display());
             }
         }
-        let mut out = std::io::stdout().lock();
-        writeln!(out, "{}", summary.to_json_line())?;
-        out.flush()?;
-        results.push(summary);
+        Ok(summary)
     }
-    if args.seeds.is_some() {
-        let agg = Aggregate::of(&results);
-        let mut out = std::io::stdout().lock();
-        writeln!(out, "{}", serde_json::to_string(&agg)?)?;
+}
+
+/// `--jobs N`: the missions on `n` threads, each with its own runtime; each summary is printed
+/// as soon as those of all lower seeds are, so the output is that of one at a time. The first
+/// error stops the threads from starting new missions and is returned.
+fn run_parallel(job: &SeedJob, seeds: &[Option<u64>], n: usize) -> anyhow::Result<Vec<SimSummary>> {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    struct Done {
+        results: Vec<Option<SimSummary>>,
+        printed: usize,
+        error: Option<anyhow::Error>,
     }
-    Ok(())
+    let next = AtomicUsize::new(0);
+    let stop = AtomicBool::new(false);
+    let done = Mutex::new(Done { results: seeds.iter().map(|_| None).collect(), printed: 0, error: None });
+    let worker = || -> anyhow::Result<()> {
+        let rt = runtime()?;
+        while !stop.load(Ordering::SeqCst) {
+            let i = next.fetch_add(1, Ordering::SeqCst);
+            let Some(seed) = seeds.get(i) else { break };
+            let tag = seed.map_or(String::new(), |s| format!("[seed {s}] "));
+            let summary = job.run(&rt, *seed, &tag)?;
+            let mut d = done.lock().map_err(|_| anyhow::anyhow!("a mission thread panicked"))?;
+            d.results[i] = Some(summary);
+            while let Some(Some(s)) = d.results.get(d.printed) {
+                print_summary(s)?;
+                d.printed += 1;
+            }
+        }
+        Ok(())
+    };
+    std::thread::scope(|scope| {
+        for _ in 0..n.min(seeds.len()) {
+            scope.spawn(|| {
+                if let Err(e) = worker() {
+                    stop.store(true, Ordering::SeqCst);
+                    if let Ok(mut d) = done.lock() {
+                        d.error.get_or_insert(e);
+                    }
+                }
+            });
+        }
+    });
+    let done = done.into_inner().map_err(|_| anyhow::anyhow!("a mission thread panicked"))?;
+    match done.error {
+        Some(e) => Err(e),
+        None => Ok(done.results.into_iter().flatten().collect()),
+    }
 }
