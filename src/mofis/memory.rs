@@ -115,15 +115,6 @@ pub struct MemoryParams {
     /// cells in free space fell from 20 % to 17.5 % and the missions were 7 % faster, but as
     /// many runs touched something and fewer arrived (README, tenth session), so it is off.
     pub vote_full_radial_px: f64,
-    /// Cells with at least this evidence but below `occupied` are *soft*: seen, but not often
-    /// enough to block (no stop, no escape). The steering prefers a heading whose path is free
-    /// of them too where one exists within its range, and the centring keeps off them. 0 (the
-    /// default): off.
-    pub soft_evidence: f64,
-    /// A cell is not seen through in a step that measured a surface at its range (within
-    /// `1.5 · cell_m`) on its bearing or the next sector either side: it is the edge of that
-    /// surface, and a ray passing just beside the silhouette says nothing about it.
-    pub keep_edges: bool,
 }
 
 impl Default for MemoryParams {
@@ -150,8 +141,6 @@ impl Default for MemoryParams {
             min_radial_px: 1.2,
             max_tangential: 0.5,
             vote_full_radial_px: 0.0,
-            soft_evidence: 0.0,
-            keep_edges: false,
             max_turn_rate: 0.3,
             max_turn_change: 0.05,
         }
@@ -184,11 +173,6 @@ impl MemoryParams {
             ("min_radial_px", nonneg(self.min_radial_px), "must be ≥ 0 pixels"),
             ("max_tangential", pos(self.max_tangential), "must be a positive fraction"),
             ("vote_full_radial_px", nonneg(self.vote_full_radial_px), "must be ≥ 0 pixels (0: off)"),
-            (
-                "soft_evidence",
-                nonneg(self.soft_evidence) && self.soft_evidence <= self.occupied,
-                "must be in [0, occupied] (0: off)",
-            ),
             ("min_range_m", nonneg(self.min_range_m), "must be a distance ≥ 0 in m"),
             ("max_turn_rate", pos(self.max_turn_rate), "must be a positive turn rate in rad/s"),
             ("max_turn_change", pos(self.max_turn_change), "must be a positive turn rate in rad/s"),
@@ -288,21 +272,7 @@ impl ObstacleMemory {
 
     /// The occupied cells' centres (evidence at `occupied`), robot frame (forward, left), m.
     fn occupied_cells(&self) -> impl Iterator<Item = [f64; 2]> + '_ {
-        self.cells_from(self.params.occupied)
-    }
-
-    /// The centres of the cells with at least `evidence`, robot frame (forward, left), m.
-    fn cells_from(&self, evidence: f64) -> impl Iterator<Item = [f64; 2]> + '_ {
-        self.cells.iter().filter(move |(_, c)| c.evidence >= evidence).map(|(k, _)| self.to_robot(*k))
-    }
-
-    /// The evidence from which cells keep the robot's path off them: `soft_evidence` when set,
-    /// else `occupied`.
-    fn soft_level(&self) -> f64 {
-        match self.params.soft_evidence {
-            s if s > 0.0 => s,
-            _ => self.params.occupied,
-        }
+        self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(|(k, _)| self.to_robot(*k))
     }
 
     /// Occupied cells, robot frame (forward, left), m: for logging and tests.
@@ -360,13 +330,7 @@ impl ObstacleMemory {
                 // ray to the far wall above a low box says nothing about the box)
                 let in_view = if f > 0.0 { sector(l.atan2(f), half_fov) } else { None };
                 let through = in_view.is_some_and(|k| {
-                    let edge = p.keep_edges
-                        && (k.saturating_sub(1)..=(k + 1).min(SECTORS - 1))
-                            .any(|j| seen[j].iter().any(|&(r, _)| (r - range).abs() <= 1.5 * p.cell_m));
-                    !edge
-                        && seen[k]
-                            .iter()
-                            .any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
+                    seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
                 });
                 let out_of_view = in_view.is_none();
                 c.evidence *= match (c.contact, through) {
@@ -495,15 +459,10 @@ impl ObstacleMemory {
     /// How far a band `half` wide (m) either side of `heading` (rad, robot frame) is free of
     /// occupied cells ahead of the robot's origin, up to `lookahead_m`; measured from the origin.
     pub fn free_width(&self, heading: f64, half: f64, lookahead_m: f64) -> f64 {
-        self.free_width_from(self.params.occupied, heading, half, lookahead_m)
-    }
-
-    /// [`free_width`](Self::free_width) of the cells with at least `evidence`.
-    fn free_width_from(&self, evidence: f64, heading: f64, half: f64, lookahead_m: f64) -> f64 {
         let p = &self.params;
         let (s, c) = heading.sin_cos();
         let mut free = lookahead_m;
-        for [f, l] in self.cells_from(evidence) {
+        for [f, l] in self.occupied_cells() {
             let along = f * c + l * s;
             let across = (-f * s + l * c).abs();
             if across <= half && along > -p.behind_m {
@@ -531,13 +490,7 @@ impl ObstacleMemory {
     /// occupied cells ([`free_distance`](Self::free_distance)) and, with a `lane`, inside it
     /// ([`lane_free_distance`](Self::lane_free_distance)).
     pub fn free_in_lane(&self, heading: f64, lookahead_m: f64, lane: Option<&Lane>) -> f64 {
-        self.free_in_lane_from(self.params.occupied, heading, lookahead_m, lane)
-    }
-
-    /// [`free_in_lane`](Self::free_in_lane) of the cells with at least `evidence`.
-    fn free_in_lane_from(&self, evidence: f64, heading: f64, lookahead_m: f64, lane: Option<&Lane>) -> f64 {
-        let half = self.params.robot_radius_m + self.params.path_margin_m;
-        let seen = self.free_width_from(evidence, heading, half, lookahead_m);
+        let seen = self.free_distance(heading, lookahead_m);
         lane.map_or(seen, |l| seen.min(self.lane_free_distance(l, heading, lookahead_m)))
     }
 
@@ -549,30 +502,12 @@ impl ObstacleMemory {
     /// corridor from the map), a path is free only as far as it stays inside it
     /// ([`lane_free_distance`](Self::lane_free_distance)): a doorway, or a wall not yet seen,
     /// is no gap to steer through.
-    ///
-    /// With `soft_evidence` set, a path free of the soft cells too is preferred: the goal, else
-    /// the candidate nearest to it within `max_rad / 2` whose path is free of them for
-    /// `lookahead_m`; only where there is none do the occupied cells alone decide, as above.
     pub fn steer(&self, goal_rad: f64, lookahead_m: f64, max_rad: f64, step_rad: f64, lane: Option<&Lane>) -> f64 {
-        let n = (max_rad / step_rad).round() as i32;
-        let soft = self.soft_level();
-        if soft < self.params.occupied {
-            let clear = |h: f64| self.free_in_lane_from(soft, h, lookahead_m, lane) >= lookahead_m;
-            if clear(goal_rad) {
-                return goal_rad;
-            }
-            let near_goal = (-n..=n)
-                .map(|k| k as f64 * step_rad)
-                .filter(|h| (h - goal_rad).abs() <= 0.5 * max_rad && clear(*h))
-                .min_by(|a, b| (a - goal_rad).abs().total_cmp(&(b - goal_rad).abs()));
-            if let Some(h) = near_goal {
-                return h;
-            }
-        }
         let free_distance = |h: f64| self.free_in_lane(h, lookahead_m, lane);
         if free_distance(goal_rad) >= lookahead_m {
             return goal_rad;
         }
+        let n = (max_rad / step_rad).round() as i32;
         let mut best: Option<(bool, f64, f64)> = None; // (free enough, free distance, heading)
         for k in -n..=n {
             let h = k as f64 * step_rad;
@@ -605,7 +540,7 @@ impl ObstacleMemory {
     /// counts as `reach_m` away. In a corridor this centres the robot, in a doorway too.
     pub fn centring(&self, window_m: f64, reach_m: f64, lookahead_m: f64, max_rad: f64) -> f64 {
         let (mut left, mut right) = (reach_m, reach_m);
-        for [f, l] in self.cells_from(self.soft_level()) {
+        for [f, l] in self.occupied_cells() {
             // beside the robot (down to its back) counts too: that is where a wall it scrapes is
             if !(-self.params.robot_radius_m..=window_m).contains(&f) {
                 continue;
@@ -926,35 +861,6 @@ mod tests {
     }
 
     #[test]
-    fn soft_cells_steer_and_centre_but_never_block() {
-        let p = MemoryParams { min_travel_m: 0.0, side_margin_m: 0.3, soft_evidence: 0.5, ..MemoryParams::default() };
-        let mut m = ObstacleMemory::new(p, 26.7f64.to_radians(), 0.4);
-        // a face seen in one frame only: evidence 1, soft (0.5 ≤ 1 < occupied 1.5), 1 m ahead
-        // from 0.15 m to 0.35 m right of the heading
-        let face: Vec<SurfacePoint> = (0..3).map(|k| pt(1.0, -0.15 - 0.1 * k as f64)).collect();
-        step(&mut m, STILL, 0.1, &face);
-        assert!(m.occupied().is_empty() && !m.threat().present, "one frame blocks nothing");
-        assert_eq!(m.free_distance(0.0, 1.5), 1.5, "the stop gate and the escape see a free path");
-        // the steering goes round it, to the nearest heading whose path is clear of it
-        let h = m.steer(0.0, 1.5, 0.7, 0.05, None);
-        assert!(h > 0.0 && h <= 0.35, "a small swerve left, round the soft face: {h}");
-        assert!(m.free_in_lane_from(0.5, h, 1.5, None) >= 1.5);
-        // unless that would take more than half the steering range: then the goal is kept
-        let q = m.steer(0.0, 1.5, 0.3, 0.05, None);
-        assert_eq!(q, 0.0, "no soft-free heading within 0.15 rad: the occupied cells decide");
-        // off: the same memory steers straight on
-        let mut off = ObstacleMemory::new(MemoryParams { soft_evidence: 0.0, ..p }, 26.7f64.to_radians(), 0.4);
-        step(&mut off, STILL, 0.1, &face);
-        assert_eq!(off.steer(0.0, 1.5, 0.7, 0.05, None), 0.0);
-        // the centring keeps off a soft face beside the robot
-        let mut side = ObstacleMemory::new(p, 26.7f64.to_radians(), 0.4);
-        let wall: Vec<SurfacePoint> = (0..10).map(|k| pt(0.5 + 0.1 * k as f64, 0.35)).collect();
-        step(&mut side, STILL, 0.1, &wall);
-        assert!(side.centring(1.5, 1.0, 2.0, 0.3) < 0.0, "steer right, away from the soft wall on the left");
-        assert_eq!(off.centring(1.5, 0.3, 2.0, 0.3), 0.0);
-    }
-
-    #[test]
     fn centring_steers_away_from_the_nearer_side() {
         let mut m = memory();
         // walls 0.35 m left and 0.95 m right, 0.5..1.5 m ahead
@@ -1074,27 +980,6 @@ mod tests {
         assert!(near[0][1] > 0.25, "the cell not seen through survives: {near:?}");
         assert!(p.check().is_ok());
         assert_eq!(MemoryParams { occupied: 5.0, ..p }.check(), Err(("max_evidence", "must be ≥ occupied")));
-    }
-
-    #[test]
-    fn keep_edges_spares_a_cell_beside_a_surface_measured_at_its_range() {
-        // a face 1 m ahead measured 4 times (cells at left 0.05 and 0.15), then 1 s in which the
-        // camera measures the face's inner cell again, one bearing sector from the outer cell
-        // (the silhouette's edge), and on the outer cell's bearing a wall 3 m away: a ray just
-        // beside the silhouette
-        let run = |keep_edges: bool| {
-            let p = MemoryParams { min_travel_m: 0.0, keep_edges, ..MemoryParams::default() };
-            let mut m = ObstacleMemory::new(p, 26.7f64.to_radians(), 0.4);
-            for _ in 0..4 {
-                step(&mut m, STILL, 0.1, &[pt(1.0, 0.05), pt(1.0, 0.15)]);
-            }
-            for _ in 0..10 {
-                step(&mut m, STILL, 0.1, &[pt(1.0, 0.09), pt(3.0, 0.45)]);
-            }
-            m.occupied().into_iter().filter(|c| c[0] < 2.0 && c[1] > 0.1).count()
-        };
-        assert_eq!(run(false), 0, "seen through: the edge cell is cleared in 1 s");
-        assert_eq!(run(true), 1, "the face is measured at the edge cell's range next to it: kept");
     }
 
     #[test]
