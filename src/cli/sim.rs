@@ -311,11 +311,13 @@ impl SeedJob<'_> {
         };
         let handle = log.as_ref().map(|l| l.handle());
         let quiet = args.quiet;
-        let summary = rt.block_on(sim::run(&setup, handle.as_ref(), |p| {
-            if !quiet {
-                eprintln!("{tag}{p}");
-            }
-        }))?;
+        let summary = rt
+            .block_on(sim::run(&setup, handle.as_ref(), |p| {
+                if !quiet {
+                    eprintln!("{tag}{p}");
+                }
+            }))
+            .with_context(|| seed.map_or("the mission".to_string(), |s| format!("the mission of seed {s}")))?;
         if let Some(log) = log {
             let path = log.path().to_path_buf();
             let s = log.close().context("closing the MCAP log")?;
