@@ -159,9 +159,8 @@ fn start_pose_and_world_geometry_come_from_the_files() {
 /// the same summaries (but for the wall-clock fields), in seed order, then the aggregate.
 #[test]
 fn parallel_seeds_print_the_same_summaries_in_seed_order() {
-    let dir = std::env::temp_dir().join(format!("flownav-sim-jobs-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let (world, map) = (dir.join("hall.toml"), dir.join("hall-map.toml"));
+    let dir = tempfile::tempdir().unwrap();
+    let (world, map) = (dir.path().join("hall.toml"), dir.path().join("hall-map.toml"));
     std::fs::write(&world, HALL).unwrap();
     std::fs::write(&map, HALL_MAP).unwrap();
     let run = |jobs: &str| {
@@ -190,5 +189,4 @@ fn parallel_seeds_print_the_same_summaries_in_seed_order() {
     let seeds: Vec<u64> = three[..3].iter().map(|v| v["seed"].as_u64().unwrap()).collect();
     assert_eq!(seeds, [3, 4, 5]);
     assert_eq!(one, three);
-    std::fs::remove_dir_all(&dir).ok();
 }

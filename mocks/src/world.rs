@@ -615,7 +615,7 @@ impl World {
         best
     }
 
-    /// For each plan point, the distance to each obstacle's footprint (boxes, then cylinders, in
+    /// For each point on the floor, the distance to each obstacle's footprint (boxes, then cylinders, in
     /// the world's order); 0 inside one. For scoring perception per obstacle.
     pub fn obstacle_distances(&self, points: &[[f64; 2]]) -> Vec<Vec<f64>> {
         let shapes = self.obstacle_shapes();

@@ -188,19 +188,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     };
     let job =
         SeedJob { args: &args, world: &world, map: &map, mission: &mission, config: &config, calib: &calib, log_dir };
-    let results = match args.jobs {
-        1 => {
-            let rt = runtime()?;
-            let mut results = Vec::new();
-            for seed in &seeds {
-                let summary = job.run(&rt, *seed, "")?;
-                print_summary(&summary)?;
-                results.push(summary);
-            }
-            results
-        }
-        n => run_parallel(&job, &seeds, n as usize)?,
-    };
+    let results = run_missions(&job, &seeds, args.jobs as usize)?;
     if args.seeds.is_some() {
         let agg = Aggregate::of(&results);
         let mut out = std::io::stdout().lock();
@@ -329,10 +317,11 @@ impl SeedJob<'_> {
     }
 }
 
-/// `--jobs N`: the missions on `n` threads, each with its own runtime; each summary is printed
-/// as soon as those of all lower seeds are, so the output is that of one at a time. The first
-/// error stops the threads from starting new missions and is returned.
-fn run_parallel(job: &SeedJob, seeds: &[Option<u64>], n: usize) -> anyhow::Result<Vec<SimSummary>> {
+/// The missions on `n` threads (`--jobs`, 1 by default), each with its own runtime; each summary
+/// is printed as soon as those of all lower seeds are, so the output is that of one at a time
+/// whatever `n`. With several threads, progress lines start with `[seed N]`. The first error
+/// stops the threads from starting new missions and is returned.
+fn run_missions(job: &SeedJob, seeds: &[Option<u64>], n: usize) -> anyhow::Result<Vec<SimSummary>> {
     use std::sync::Mutex;
     use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
     struct Done {
@@ -348,7 +337,10 @@ fn run_parallel(job: &SeedJob, seeds: &[Option<u64>], n: usize) -> anyhow::Resul
         while !stop.load(Ordering::SeqCst) {
             let i = next.fetch_add(1, Ordering::SeqCst);
             let Some(seed) = seeds.get(i) else { break };
-            let tag = seed.map_or(String::new(), |s| format!("[seed {s}] "));
+            let tag = match (n > 1, seed) {
+                (true, Some(s)) => format!("[seed {s}] "),
+                _ => String::new(),
+            };
             let summary = job.run(&rt, *seed, &tag)?;
             let mut d = done.lock().map_err(|_| anyhow::anyhow!("a mission thread panicked"))?;
             d.results[i] = Some(summary);
