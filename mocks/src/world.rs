@@ -599,17 +599,18 @@ impl World {
     /// reaching below 0.5 m, boxes, cylinders); 0 inside an obstacle. For collision checks.
     pub fn clearance(&self, x: f64, y: f64) -> Clearance {
         let p = [x, y];
-        let mut best = Clearance { distance_m: f64::INFINITY, object: "nothing".into() };
+        let mut best = Clearance { distance_m: f64::INFINITY, object: "nothing".into(), obstacle: None };
         for f in self.faces().iter().filter(|f| f.z0 < 0.5) {
             let d = point_segment_distance(p, f.a, f.b);
             if d < best.distance_m {
-                best = Clearance { distance_m: d, object: format!("wall {}", wall_label(f.wall, &self.walls[f.wall])) };
+                let object = format!("wall {}", wall_label(f.wall, &self.walls[f.wall]));
+                best = Clearance { distance_m: d, object, obstacle: None };
             }
         }
-        for s in self.obstacle_shapes() {
+        for (k, s) in self.obstacle_shapes().iter().enumerate() {
             let d = s.distance_to_point(p);
             if d < best.distance_m {
-                best = Clearance { distance_m: d, object: s.label() };
+                best = Clearance { distance_m: d, object: s.label(), obstacle: Some(k) };
             }
         }
         best
@@ -741,6 +742,9 @@ impl World {
 pub struct Clearance {
     pub distance_m: f64,
     pub object: String,
+    /// The obstacle's index in [`World::obstacle_distances`]' order (boxes, then cylinders);
+    /// `None` for a wall or nothing.
+    pub obstacle: Option<usize>,
 }
 
 /// A vertical rectangle of wall between plan points `a` and `b`, from height `z0` to `z1`.

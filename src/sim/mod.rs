@@ -31,6 +31,7 @@
 //! rendered frames and the driver's odometry; the true pose is used to render, to detect
 //! collisions, and to score the run.
 
+mod contact;
 pub mod quality;
 pub mod stats;
 
@@ -384,6 +385,7 @@ pub async fn run(
     let mut tick_odometry: Vec<BodyVelocity> = Vec::new();
     let (mut odom_seen, mut path_m, mut min_clear) = (0u64, 0.0f64, f64::INFINITY);
     let mut first_contact: Option<Contact> = None;
+    let mut contact_trace = contact::ContactTrace::new(&setup.world);
     let (mut failsafe_stops, mut frames, mut tpo_frames) = (0u64, 0u64, [0u64; 5]);
     let (mut doors_matched, mut landmarks_missed, mut replans) = (0u64, 0u64, 0u64);
     let mut status = GoalStatus::Active;
@@ -444,7 +446,19 @@ pub async fn run(
         let near = setup.world.clearance(pose.x, pose.y);
         let clearance = near.distance_m - radius;
         min_clear = min_clear.min(clearance);
-        if first_contact.is_none() && server.with_device(|b| b.drive().collisions()) > 0 {
+        let contacts = server.with_device(|b| b.drive().collisions());
+        if let Some(trace) = &mut contact_trace {
+            let scene = contact::Scene {
+                t_s,
+                pose,
+                world: &setup.world,
+                pipeline: &pipeline,
+                last: last_output.as_ref(),
+                odometry,
+            };
+            trace.check(contacts, &near, &scene);
+        }
+        if first_contact.is_none() && contacts > 0 {
             first_contact = Some(Contact {
                 t_s: round3(t_s),
                 pose: [round3(pose.x), round3(pose.y), round3(pose.yaw.to_degrees())],
@@ -514,6 +528,9 @@ pub async fn run(
             let pts: Vec<String> =
                 pipeline.surface_points().iter().map(|p| [p.forward, p.left]).filter(near).map(world).collect();
             tracing::trace!(target: "flownav::sim::cells", "cells t={t_s:.3} occupied=[{}] points=[{}]", cells.join(" "), pts.join(" "));
+        }
+        if let Some(trace) = &mut contact_trace {
+            trace.observe(t_s, pose, &setup.world, pipeline.memory());
         }
         if let Some(p) = pipeline.pafsis_mut() {
             for ev in p.take_events() {
