@@ -155,6 +155,52 @@ impl FrameMotion {
     }
 }
 
+/// At least this many blocks must show a yaw error for [`yaw_correction`] to measure one.
+pub const MIN_YAW_BLOCKS: usize = 16;
+
+/// The correction to the odometry's yaw over a frame pair that the flow itself measures, rad
+/// (positive = the camera turned further left than `vel` says).
+///
+/// The translational flow points away from the focus of expansion whatever the depth, so the
+/// de-rotated flow's component across that direction is rotation the odometry got wrong (its
+/// samples never cover the frame interval exactly, and a changing turn rate makes that a yaw
+/// error; wheel slip) plus matching noise. With `a` that component at a block and `b` its change
+/// per radian of yaw, the block says `−a/b`; the correction is the median over the blocks
+/// where a yaw error shows (`|b|` at least a third of the focal length, so not on the horizontal
+/// line through the focus of expansion) and farther than a tenth of the focal length from it.
+/// `blocks`: `[x, y, u, v]` of the valid flow vectors, pixels. `None` with fewer than
+/// [`MIN_YAW_BLOCKS`] such blocks, or when the camera barely moves along its axis.
+pub fn yaw_correction(
+    cam: &PinholeCamera,
+    vel: BodyVelocity,
+    dt: f64,
+    blocks: impl Iterator<Item = [f64; 4]>,
+) -> Option<f64> {
+    const EPS: f64 = 1e-3;
+    let m0 = FrameMotion::from_odometry(cam, vel, dt);
+    let m1 = FrameMotion::from_odometry(cam, BodyVelocity::new(vel.v, vel.omega + EPS / dt), dt);
+    let foe = m0.foe(cam)?;
+    let mut votes: Vec<f64> = blocks
+        .filter_map(|[x, y, u, v]| {
+            let (rx, ry) = (x - foe[0], y - foe[1]);
+            let r = rx.hypot(ry);
+            if r < 0.1 * cam.fx {
+                return None;
+            }
+            let across = [-ry / r, rx / r];
+            let (d0, d1) = (m0.derotate(cam, x, y, u, v)?, m1.derotate(cam, x, y, u, v)?);
+            let a = d0[0] * across[0] + d0[1] * across[1];
+            let b = ((d1[0] - d0[0]) * across[0] + (d1[1] - d0[1]) * across[1]) / EPS;
+            (b.abs() >= cam.fx / 3.0).then_some(-a / b).filter(|d| d.is_finite())
+        })
+        .collect();
+    if votes.len() < MIN_YAW_BLOCKS {
+        return None;
+    }
+    let mid = votes.len() / 2;
+    Some(*votes.select_nth_unstable_by(mid, f64::total_cmp).1)
+}
+
 /// Limits that keep depth-from-flow away from its ill-conditioned cases.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -181,6 +227,9 @@ pub struct DepthParams {
     /// above the floor count as floor too: a floor block whose depth is off by a fraction `e`
     /// appears `e · camera height` above the floor, whatever its distance.
     pub floor_rel: f64,
+    /// The odometry's yaw over a frame pair is corrected from the flow ([`yaw_correction`])
+    /// when the correction is at most this, rad; 0: not corrected.
+    pub yaw_fix_max_rad: f64,
 }
 
 impl Default for DepthParams {
@@ -193,6 +242,7 @@ impl Default for DepthParams {
             floor_height_m: 0.1,
             reliable_radial_px: 0.3,
             floor_rel: 0.6,
+            yaw_fix_max_rad: 0.0,
         }
     }
 }

@@ -91,7 +91,7 @@ impl OffisParams {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         let t = &self.temporal;
-        let checks: [(&str, bool, &str); 17] = [
+        let checks: [(&str, bool, &str); 18] = [
             ("outlier.k_median", pos(self.outlier.k_median), "must be a positive number (typ. 2..5)"),
             ("outlier.floor_px", nonneg(self.outlier.floor_px), "must be ≥ 0 pixels"),
             ("outlier.min_support", self.outlier.min_support <= 8, "must be in 0..=8 neighbours"),
@@ -114,6 +114,7 @@ impl OffisParams {
             ),
             ("depth.reliable_radial_px", nonneg(self.depth.reliable_radial_px), "must be ≥ 0 pixels"),
             ("depth.floor_rel", nonneg(self.depth.floor_rel) && self.depth.floor_rel < 1.0, "must be in [0, 1)"),
+            ("depth.yaw_fix_max_rad", nonneg(self.depth.yaw_fix_max_rad), "must be ≥ 0 rad (0: off)"),
             (
                 "temporal.window",
                 (1..=temporal::MAX_WINDOW).contains(&t.window),
@@ -282,7 +283,14 @@ impl Offis {
         let (outlier_p, plane_p, tilt_p, depth_p) =
             (self.params.outlier, self.params.plane, self.params.tilt, self.params.depth);
         let cam = PinholeCamera::new(calib, flow.width, flow.height);
-        let motion = FrameMotion::from_odometry(&cam, odo, dt);
+        let mut motion = FrameMotion::from_odometry(&cam, odo, dt);
+        if depth_p.yaw_fix_max_rad > 0.0 {
+            let blocks = flow.vectors.iter().filter(|f| f.valid()).map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
+            if let Some(fix) = geometry::yaw_correction(&cam, odo, dt, blocks).filter(|d| d.abs() <= depth_p.yaw_fix_max_rad)
+            {
+                motion = FrameMotion::from_odometry(&cam, BodyVelocity::new(odo.v, odo.omega + fix / dt), dt);
+            }
+        }
         let n = grid.len();
         self.u.resize(n, 0.0);
         self.v.resize(n, 0.0);

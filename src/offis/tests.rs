@@ -381,3 +381,25 @@ fn the_temporal_table_is_range_checked() {
     let parsed: OffisParams = toml::from_str("[temporal]\nwindow = 1\n").unwrap();
     assert_eq!((parsed.temporal.window, parsed.temporal.decay), (1, 0.8));
 }
+
+#[test]
+fn the_flow_measures_the_odometrys_yaw_error() {
+    // driving 0.4 m/s while turning 0.3 rad/s, a wall 3 m ahead and the floor; the odometry
+    // says the turn rate was off by ±0.02 rad/s (2 mrad over the pair, 0.7 px at 320 px wide)
+    let c = calib(0.1);
+    let truth = BodyVelocity::new(0.4, 0.3);
+    let scene =
+        Scene { rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()] };
+    let pair = scene.flow(&c, 16, 16, truth, DT);
+    let cam = PinholeCamera::new(&c, 1280, 720);
+    let blocks = || pair.field.vectors.iter().filter(|f| f.valid()).map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
+    for bias in [0.02, -0.02, 0.0] {
+        let odo = BodyVelocity::new(0.4, 0.3 - bias);
+        let fix = super::geometry::yaw_correction(&cam, odo, DT, blocks()).unwrap();
+        assert!((fix - bias * DT).abs() < 1e-4, "bias {bias}: correction {fix}, want {}", bias * DT);
+    }
+    // standing still there is no focus of expansion to measure it against
+    let still = Scene::default().flow(&c, 16, 16, BodyVelocity::new(0.0, 0.3), DT);
+    let blocks = still.field.vectors.iter().map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
+    assert_eq!(super::geometry::yaw_correction(&cam, BodyVelocity::new(0.0, 0.3), DT, blocks), None);
+}
