@@ -1,16 +1,14 @@
 //! The `flownav::sim::contact` trace: at each new contact, what the obstacle memory held of the
 //! object touched, and what the pipeline decided. It sorts contacts into "drove into something
-//! it remembered" and "drove into something it had forgotten or never known" (docs/sim.md).
+//! it remembered" and "drove into something it had forgotten or never known" (docs/sim.md). A
+//! cell is on an obstacle within [`GHOST_M`] of its footprint, as for the held score.
 
+use super::quality::GHOST_M;
 use crate::mofis::memory::ObstacleMemory;
 use crate::step::{Pipeline, StepOutput};
 use hal::BodyVelocity;
 use mocks::world::Clearance;
 use mocks::{Pose, World};
-
-/// A memory cell counts as on an obstacle within this of its footprint, m (half a cell's
-/// diagonal plus the depth noise of a near surface).
-const ON_OBJECT_M: f64 = 0.15;
 
 /// What the trace keeps between contacts.
 pub(super) struct ContactTrace {
@@ -46,7 +44,7 @@ impl ContactTrace {
         let cells: Vec<[f64; 2]> = memory.occupied().into_iter().map(|c| pose.transform(c)).collect();
         for row in world.obstacle_distances(&cells) {
             for (held, d) in self.held_at.iter_mut().zip(row) {
-                if d < ON_OBJECT_M {
+                if d < GHOST_M {
                     *held = t_s;
                 }
             }
@@ -67,7 +65,7 @@ impl ContactTrace {
             .filter(|c| {
                 let [x, y] = s.pose.transform(**c);
                 let at = s.world.clearance(x, y);
-                at.object == near.object && at.distance_m < ON_OBJECT_M
+                at.object == near.object && at.distance_m < GHOST_M
             })
             .map(|c| format!("{:.2}@{:.2}", c[0].hypot(c[1]), c[1].atan2(c[0])))
             .collect();
