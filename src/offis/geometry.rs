@@ -168,32 +168,33 @@ pub const MIN_YAW_BLOCKS: usize = 16;
 /// per radian of yaw, the block says `−a/b`; the correction is the median over the blocks
 /// where a yaw error shows (`|b|` at least a third of the focal length, so not on the horizontal
 /// line through the focus of expansion) and farther than a tenth of the focal length from it.
-/// `blocks`: `[x, y, u, v]` of the valid flow vectors, pixels. `None` with fewer than
-/// [`MIN_YAW_BLOCKS`] such blocks, or when the camera barely moves along its axis.
+/// `blocks`: `[x, y, u, v]` of the valid flow vectors, pixels; `votes`: scratch space (cleared
+/// first), so that a step allocates nothing. `None` with fewer than [`MIN_YAW_BLOCKS`] such
+/// blocks, or when the camera barely moves along its axis.
 pub fn yaw_correction(
     cam: &PinholeCamera,
     vel: BodyVelocity,
     dt: f64,
     blocks: impl Iterator<Item = [f64; 4]>,
+    votes: &mut Vec<f64>,
 ) -> Option<f64> {
     const EPS: f64 = 1e-3;
     let m0 = FrameMotion::from_odometry(cam, vel, dt);
     let m1 = FrameMotion::from_odometry(cam, BodyVelocity::new(vel.v, vel.omega + EPS / dt), dt);
     let foe = m0.foe(cam)?;
-    let mut votes: Vec<f64> = blocks
-        .filter_map(|[x, y, u, v]| {
-            let (rx, ry) = (x - foe[0], y - foe[1]);
-            let r = rx.hypot(ry);
-            if r < 0.1 * cam.fx {
-                return None;
-            }
-            let across = [-ry / r, rx / r];
-            let (d0, d1) = (m0.derotate(cam, x, y, u, v)?, m1.derotate(cam, x, y, u, v)?);
-            let a = d0[0] * across[0] + d0[1] * across[1];
-            let b = ((d1[0] - d0[0]) * across[0] + (d1[1] - d0[1]) * across[1]) / EPS;
-            (b.abs() >= cam.fx / 3.0).then_some(-a / b).filter(|d| d.is_finite())
-        })
-        .collect();
+    votes.clear();
+    votes.extend(blocks.filter_map(|[x, y, u, v]| {
+        let (rx, ry) = (x - foe[0], y - foe[1]);
+        let r = rx.hypot(ry);
+        if r < 0.1 * cam.fx {
+            return None;
+        }
+        let across = [-ry / r, rx / r];
+        let (d0, d1) = (m0.derotate(cam, x, y, u, v)?, m1.derotate(cam, x, y, u, v)?);
+        let a = d0[0] * across[0] + d0[1] * across[1];
+        let b = ((d1[0] - d0[0]) * across[0] + (d1[1] - d0[1]) * across[1]) / EPS;
+        (b.abs() >= cam.fx / 3.0).then_some(-a / b).filter(|d| d.is_finite())
+    }));
     if votes.len() < MIN_YAW_BLOCKS {
         return None;
     }

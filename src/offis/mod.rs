@@ -286,8 +286,8 @@ impl Offis {
         let mut motion = FrameMotion::from_odometry(&cam, odo, dt);
         if depth_p.yaw_fix_max_rad > 0.0 {
             let blocks = flow.vectors.iter().filter(|f| f.valid()).map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
-            if let Some(fix) =
-                geometry::yaw_correction(&cam, odo, dt, blocks).filter(|d| d.abs() <= depth_p.yaw_fix_max_rad)
+            if let Some(fix) = geometry::yaw_correction(&cam, odo, dt, blocks, &mut self.scratch)
+                .filter(|d| d.abs() <= depth_p.yaw_fix_max_rad)
             {
                 motion = FrameMotion::from_odometry(&cam, BodyVelocity::new(odo.v, odo.omega + fix / dt), dt);
             }

@@ -395,11 +395,11 @@ fn the_flow_measures_the_odometrys_yaw_error() {
     let blocks = || pair.field.vectors.iter().filter(|f| f.valid()).map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
     for bias in [0.02, -0.02, 0.0] {
         let odo = BodyVelocity::new(0.4, 0.3 - bias);
-        let fix = super::geometry::yaw_correction(&cam, odo, DT, blocks()).unwrap();
+        let fix = super::geometry::yaw_correction(&cam, odo, DT, blocks(), &mut Vec::new()).unwrap();
         assert!((fix - bias * DT).abs() < 1e-4, "bias {bias}: correction {fix}, want {}", bias * DT);
     }
     // standing still there is no focus of expansion to measure it against
     let still = Scene::default().flow(&c, 16, 16, BodyVelocity::new(0.0, 0.3), DT);
     let blocks = still.field.vectors.iter().map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
-    assert_eq!(super::geometry::yaw_correction(&cam, BodyVelocity::new(0.0, 0.3), DT, blocks), None);
+    assert_eq!(super::geometry::yaw_correction(&cam, BodyVelocity::new(0.0, 0.3), DT, blocks, &mut Vec::new()), None);
 }
