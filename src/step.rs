@@ -346,6 +346,9 @@ impl Pipeline {
         let (min_radial, max_tangential) = (mp.min_radial_px, mp.max_tangential);
         self.offis.surface_points([m.x_m, m.y_m, m.z_m], min_radial, max_tangential, &mut self.points);
         self.memory.update(odometry, frame_dt, &self.points, measured);
+        // the corridor from the map: for the memory's queries, the escape and the steering
+        let lane = self.pafsis().and_then(Pafsis::lane);
+        self.memory.set_lane(lane);
         // where the plan stops the robot (before a turn, at the goal): nothing beyond is in its way
         let stop_ahead = match &self.navigator {
             Navigator::Mission(pafsis) => pafsis.stop_ahead_m(),
@@ -381,8 +384,6 @@ impl Pipeline {
             _ => goal,
         };
         let lookahead = STEER_LOOKAHEAD_M.min(horizon);
-        // the corridor from the map, for the escape and the steering
-        let lane = self.pafsis().and_then(Pafsis::lane);
         // standing still too long: turn to the free heading nearest the goal, round the full
         // circle, and drive off that way (a stall recovery's manoeuvre goes first)
         let goal = match turn_away {

@@ -206,6 +206,56 @@ fn the_corridor_lane_comes_from_the_map_width_and_dead_reckoning() {
     assert!((lane.angle_rad - (a0 - 0.2)).abs() < 1e-9, "{lane:?}");
 }
 
+/// R9:D2 with scripted odometry: out of R9 onto the corridor's centre line, a swerve 0.5 m
+/// south, the corridor leg run out there, and the turn to face D2; returns at the last leg.
+fn swerved_to_the_last_leg(params: PafsisParams) -> Pafsis {
+    use std::f64::consts::{FRAC_PI_2, PI};
+    let mut nav = Pafsis::new(office(), "R9:D2".parse::<Mission>().unwrap(), params).unwrap();
+    let none = Perception::default();
+    while nav.progress().leg < 2 {
+        nav.step(&none, BodyVelocity::new(0.2, 0.0), 0.1);
+    }
+    while nav.progress().leg < 3 {
+        nav.step(&none, BodyVelocity::new(0.0, 0.5), 0.02);
+    }
+    // face south, drive 0.5 m, face west again (exactly: the turn leg ends within its tolerance)
+    let turn_to = |nav: &mut Pafsis, heading: f64| {
+        let by = (heading - nav.progress().heading_rad + PI).rem_euclid(2.0 * PI) - PI;
+        nav.step(&none, BodyVelocity::new(0.0, by / 0.5), 0.5);
+    };
+    turn_to(&mut nav, -FRAC_PI_2);
+    nav.step(&none, BodyVelocity::new(0.5, 0.0), 1.0);
+    turn_to(&mut nav, PI);
+    while nav.progress().leg < 4 {
+        nav.step(&none, BodyVelocity::new(0.3, 0.0), 0.1);
+    }
+    while nav.progress().leg < 5 {
+        nav.step(&none, BodyVelocity::new(0.0, -0.5), 0.02);
+    }
+    turn_to(&mut nav, FRAC_PI_2);
+    nav
+}
+
+#[test]
+fn a_leg_to_a_place_starts_from_where_the_robot_already_is_along_it() {
+    // the last leg goes 0.5 m north from the centre line to D2 (y = 0.5); from 0.5 m south of
+    // the line it is 1 m long, so it starts 0.5 m before its start
+    let mut nav = swerved_to_the_last_leg(PafsisParams::default());
+    let [x, y] = nav.position_m().unwrap();
+    assert!((x - 9.0).abs() < 0.05 && (y + 0.5).abs() < 0.03, "({x:.2}, {y:.2})");
+    let along = nav.progress().along_m;
+    assert!((along + 0.5).abs() < 0.03, "{along}");
+    while nav.status() == GoalStatus::Active {
+        nav.step(&Perception::default(), BodyVelocity::new(0.1, 0.0), 0.1);
+    }
+    let [_, y] = nav.position_m().unwrap();
+    assert!((y - 0.5).abs() < 0.03, "arrived at y = {y:.2}, D2 is at 0.5");
+    // without dead reckoning in the map frame, a leg is its length from wherever it starts
+    let blind = swerved_to_the_last_leg(PafsisParams { cross_track_odometry: false, ..PafsisParams::default() });
+    assert_eq!(blind.progress().leg, 5);
+    assert_eq!(blind.progress().along_m, 0.0);
+}
+
 #[test]
 fn doors_seen_obliquely_do_not_relocalise() {
     let map = office();

@@ -87,6 +87,13 @@ pub struct MemoryParams {
     /// Clearance kept to the corridor's walls as the map gives them ([`crate::pafsis::Lane`]),
     /// m: less than `path_margin_m`, since the dead-reckoned position drifts.
     pub lane_margin_m: f64,
+    /// With the corridor from the map ([`ObstacleMemory::set_lane`]), occupied cells less than
+    /// this far inside its walls (or beyond them) are taken for the walls, which the lane
+    /// already keeps the robot from: they neither block a heading, nor count as a threat, nor
+    /// centre the robot (the lane's walls do that). Block-matching depth at a door jamb's edge
+    /// or a wall seen at a grazing angle puts such cells 0.1–0.26 m inside the corridor, where
+    /// they narrowed the gap beside an obstacle until the robot crept (seed 16). 0: off.
+    pub wall_band_m: f64,
     /// Points are taken in only when the robot travelled at least this far forward over the
     /// frame interval, m: with less, the flow of anything but the nearest surfaces is below the
     /// matching noise, and a noise vector reads as a surface close by.
@@ -136,6 +143,7 @@ impl Default for MemoryParams {
             side_margin_m: 0.15,
             behind_m: 0.0,
             lane_margin_m: 0.1,
+            wall_band_m: 0.25,
             min_travel_m: 0.006,
             min_range_m: 0.22,
             min_radial_px: 1.2,
@@ -169,6 +177,11 @@ impl MemoryParams {
             ("side_margin_m", nonneg(self.side_margin_m), "must be a distance ≥ 0 in m"),
             ("behind_m", nonneg(self.behind_m), "must be a distance ≥ 0 in m"),
             ("lane_margin_m", nonneg(self.lane_margin_m), "must be a distance ≥ 0 in m"),
+            (
+                "wall_band_m",
+                nonneg(self.wall_band_m) && self.wall_band_m <= 0.5,
+                "must be a distance in [0, 0.5] m (0: off)",
+            ),
             ("min_travel_m", nonneg(self.min_travel_m), "must be a distance ≥ 0 in m"),
             ("min_radial_px", nonneg(self.min_radial_px), "must be ≥ 0 pixels"),
             ("max_tangential", pos(self.max_tangential), "must be a positive fraction"),
@@ -206,6 +219,8 @@ pub struct ObstacleMemory {
     touched: Vec<((i32, i32), f64, f64)>,
     /// The points measured this step per bearing sector: (range, height above the floor), m.
     seen: Vec<Vec<(f64, f64)>>,
+    /// The corridor the robot is in, from the map ([`set_lane`](Self::set_lane)).
+    lane: Option<Lane>,
 }
 
 /// One grid cell: its evidence, and the top of what was seen in it.
@@ -249,6 +264,7 @@ impl ObstacleMemory {
             cells: BTreeMap::new(),
             touched: Vec::new(),
             seen: Vec::new(),
+            lane: None,
         }
     }
 
@@ -273,6 +289,27 @@ impl ObstacleMemory {
     /// The occupied cells' centres (evidence at `occupied`), robot frame (forward, left), m.
     fn occupied_cells(&self) -> impl Iterator<Item = [f64; 2]> + '_ {
         self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(|(k, _)| self.to_robot(*k))
+    }
+
+    /// The occupied cells that are obstacles: all of them, but for those `wall_band_m` inside
+    /// the walls of the current lane or beyond them ([`MemoryParams::wall_band_m`]).
+    fn obstacle_cells(&self) -> impl Iterator<Item = [f64; 2]> + '_ {
+        let wall = self.lane.filter(|_| self.params.wall_band_m > 0.0).map(|l| {
+            let (s, c) = l.angle_rad.sin_cos();
+            (l, s, c, l.half_width_m - self.params.wall_band_m)
+        });
+        self.occupied_cells().filter(move |&[f, l]| match wall {
+            // the cell's offset left of the corridor's centre line
+            Some((lane, s, c, inner)) => (lane.left_m - f * s + l * c).abs() < inner,
+            None => true,
+        })
+    }
+
+    /// The corridor the robot is in now, from the map (`None`: not in one, or no map): the
+    /// queries below then leave the walls to it ([`MemoryParams::wall_band_m`]). Set each step
+    /// before the queries.
+    pub fn set_lane(&mut self, lane: Option<Lane>) {
+        self.lane = lane;
     }
 
     /// Occupied cells, robot frame (forward, left), m: for logging and tests.
@@ -415,7 +452,7 @@ impl ObstacleMemory {
         let path = p.robot_radius_m + p.path_margin_m;
         let horizon = self.horizon(reach_m);
         let mut best: [Option<(f64, [f64; 2])>; 2] = [None, None];
-        for [along, across] in self.occupied_cells() {
+        for [along, across] in self.obstacle_cells() {
             // a round robot driving forward never meets what is beside or behind its origin
             if along <= -p.behind_m || along > horizon {
                 continue;
@@ -462,7 +499,7 @@ impl ObstacleMemory {
         let p = &self.params;
         let (s, c) = heading.sin_cos();
         let mut free = lookahead_m;
-        for [f, l] in self.occupied_cells() {
+        for [f, l] in self.obstacle_cells() {
             let along = f * c + l * s;
             let across = (-f * s + l * c).abs();
             if across <= half && along > -p.behind_m {
@@ -540,7 +577,12 @@ impl ObstacleMemory {
     /// counts as `reach_m` away. In a corridor this centres the robot, in a doorway too.
     pub fn centring(&self, window_m: f64, reach_m: f64, lookahead_m: f64, max_rad: f64) -> f64 {
         let (mut left, mut right) = (reach_m, reach_m);
-        for [f, l] in self.occupied_cells() {
+        // the lane's walls, where the wall band leaves the walls to it
+        if let Some(lane) = self.lane.filter(|_| self.params.wall_band_m > 0.0) {
+            left = left.min((lane.half_width_m - lane.left_m).max(0.0));
+            right = right.min((lane.half_width_m + lane.left_m).max(0.0));
+        }
+        for [f, l] in self.obstacle_cells() {
             // beside the robot (down to its back) counts too: that is where a wall it scrapes is
             if !(-self.params.robot_radius_m..=window_m).contains(&f) {
                 continue;
@@ -858,6 +900,47 @@ mod tests {
         let h = m.steer(0.0, 1.5, 0.7, 0.05, Some(&lane));
         assert!(h < 0.0, "with the lane: right, the way inside the corridor: {h}");
         assert!(m.free_distance(h, 1.5) >= 1.5 && m.lane_free_distance(&lane, h, 1.5) >= 1.5, "{h}");
+    }
+
+    #[test]
+    fn with_the_wall_band_cells_at_the_corridors_walls_are_left_to_the_lane() {
+        // a 2 m corridor, the robot on its centre line; a box 0.35–0.55 m left of the line, 1 m
+        // ahead, and a door jamb's phantom 0.8 m right (0.2 m inside the wall) 0.7 m ahead
+        let band = MemoryParams { wall_band_m: 0.25, ..memory().params };
+        let mut m = ObstacleMemory::new(band, 26.7f64.to_radians(), 0.4);
+        let seen = [pt(1.0, 0.35), pt(1.0, 0.45), pt(1.0, 0.55), pt(0.7, -0.8)];
+        for _ in 0..3 {
+            step(&mut m, STILL, 0.1, &seen);
+        }
+        assert_eq!(m.occupied().len(), 4, "the memory holds all it saw");
+        // without a lane, or with the band off, the phantom is an obstacle like the box
+        let lane = Lane { left_m: 0.0, angle_rad: 0.0, half_width_m: 1.0 };
+        let phantom_heading = (-0.8f64).atan2(0.7);
+        assert!(m.free_distance(phantom_heading, 1.5) < 1.0);
+        m.set_lane(Some(lane));
+        assert!(m.free_distance(phantom_heading, 1.5) >= 1.5, "the phantom is the lane's wall");
+        assert!(m.free_distance(0.45f64.atan2(1.0), 1.5) < 1.2, "the box still blocks");
+        let [left, right] = m.threat_sides(f64::INFINITY);
+        assert!(left.present && !right.present, "{left:?} {right:?}");
+        // the lane's walls centre the robot: a box 0.35 m left, the right wall 1 m away
+        assert!(m.centring(1.5, 0.9, 1.5, 0.3) < 0.0);
+        // turned 0.3 rad right of the corridor, 0.5 m right of its centre line: the cells are
+        // judged by where they are across the corridor, not across the robot's heading
+        let mut turned = ObstacleMemory::new(band, 26.7f64.to_radians(), 0.4);
+        turned.set_lane(Some(Lane { left_m: -0.5, angle_rad: 0.3, half_width_m: 1.0 }));
+        let (s, c) = 0.3f64.sin_cos();
+        // points 0.35 m (a box) and 0.85 m (at the wall) right of the centre line, 1 m along it
+        let at = |across: f64| {
+            let (f, l) = (1.0, across + 0.5); // corridor frame relative to the robot
+            pt(f * c - l * s, f * s + l * c)
+        };
+        for _ in 0..3 {
+            step(&mut turned, STILL, 0.1, &[at(-0.35), at(-0.85)]);
+        }
+        assert_eq!(turned.occupied().len(), 2);
+        assert_eq!(turned.obstacle_cells().count(), 1, "{:?}", turned.occupied());
+        let off = ObstacleMemory { params: MemoryParams { wall_band_m: 0.0, ..band }, ..turned.clone() };
+        assert_eq!(off.obstacle_cells().count(), 2, "band off: every occupied cell counts");
     }
 
     #[test]

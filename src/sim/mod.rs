@@ -507,13 +507,17 @@ pub async fn run(
                 .map(|p| (p.forward.hypot(p.left), p.left.atan2(p.forward)))
                 .fold((f64::INFINITY, 0.0), |a, b| if b.0 < a.0 { b } else { a });
             let odo = odometry;
+            let lane = pipeline.pafsis().and_then(crate::pafsis::Pafsis::lane);
             tracing::trace!(
                 target: "flownav::sim::frames",
-                "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3} goal_a={:.3} steer_a={:.3} weight={:.2} avoid_turn={:.2} est_yaw={:.3} leg={}",
+                "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3} goal_a={:.3} steer_a={:.3} weight={:.2} avoid_turn={:.2} est_yaw={:.3} leg={} lane_left={:.3} lane_a={:.3} est_xy={:?}",
                 pose.x, pose.y, pose.yaw, o.perception.tpo.shape, t.tpo.shape, ob.distance_m, ob.bearing_rad,
                 t.obstacle.distance_m, t.obstacle.bearing_rad, o.avoided.distance_m, o.avoided.bearing_rad, setpoint.v, setpoint.omega, pts.len(), near.0, near.1, odo.v, odo.omega,
                 o.goal.angle_rad, o.steered.angle_rad, o.mofis.weight, o.mofis.avoidance.turn, pipeline.pafsis().map_or(f64::NAN, |p| p.progress().heading_rad),
-                pipeline.pafsis().map_or(0, |p| p.progress().leg)
+                pipeline.pafsis().map_or(0, |p| p.progress().leg),
+                lane.map_or(f64::NAN, |l| l.left_m),
+                lane.map_or(f64::NAN, |l| l.angle_rad),
+                pipeline.pafsis().and_then(|p| p.position_m()).map(|[x, y]| [(x * 1e3).round() / 1e3, (y * 1e3).round() / 1e3])
             );
         }
         if tracing::enabled!(target: "flownav::sim::cells", tracing::Level::TRACE) {
