@@ -29,7 +29,9 @@
 //! path_margin_m` of the heading line), or just beside it (in a band `side_margin_m` wide that
 //! narrows ahead), reported farther away the farther beyond the path it lies, with its bearing
 //! from the robot's origin ([`ObstacleMemory::threat_sides`]). Walls and boxes alike: a wall
-//! the robot drives at is in its path, a corridor wall beside it is not.
+//! the robot drives at is in its path, a corridor wall beside it is not. In a corridor from the
+//! map ([`ObstacleMemory::set_lane`]), cells within `wall_band_m` of its walls are the walls':
+//! they count only against the robot's body, and the lane keeps the robot off the walls.
 //!
 //! Pure and deterministic: the cells live in a `BTreeMap`, so the same inputs give the same
 //! outputs in the same order (replay is bit-exact).
@@ -89,10 +91,12 @@ pub struct MemoryParams {
     pub lane_margin_m: f64,
     /// With the corridor from the map ([`ObstacleMemory::set_lane`]), occupied cells less than
     /// this far inside its walls (or beyond them) are taken for the walls, which the lane
-    /// already keeps the robot from: they neither block a heading, nor count as a threat, nor
-    /// centre the robot (the lane's walls do that). Block-matching depth at a door jamb's edge
-    /// or a wall seen at a grazing angle puts such cells 0.1–0.26 m inside the corridor, where
-    /// they narrowed the gap beside an obstacle until the robot crept (seed 16). 0: off.
+    /// already keeps the robot from: they count only against the robot's body (no path margin,
+    /// no side band), and do not centre the robot (the lane's walls do that). Block-matching
+    /// depth at a door jamb's edge or a wall seen at a grazing angle puts such cells 0.1–0.26 m
+    /// inside the corridor, where, with the path margin, they narrowed the gap beside an
+    /// obstacle until the robot crept (seed 16). Something that really stands out of the wall
+    /// less than this is still not driven into. 0: off.
     pub wall_band_m: f64,
     /// Points are taken in only when the robot travelled at least this far forward over the
     /// frame interval, m: with less, the flow of anything but the nearest surfaces is below the
@@ -291,17 +295,17 @@ impl ObstacleMemory {
         self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(|(k, _)| self.to_robot(*k))
     }
 
-    /// The occupied cells that are obstacles: all of them, but for those `wall_band_m` inside
-    /// the walls of the current lane or beyond them ([`MemoryParams::wall_band_m`]).
-    fn obstacle_cells(&self) -> impl Iterator<Item = [f64; 2]> + '_ {
+    /// The occupied cells, each with whether it lies in the wall band: less than `wall_band_m`
+    /// inside the walls of the current lane, or beyond them ([`MemoryParams::wall_band_m`]).
+    fn banded_cells(&self) -> impl Iterator<Item = ([f64; 2], bool)> + '_ {
         let wall = self.lane.filter(|_| self.params.wall_band_m > 0.0).map(|l| {
             let (s, c) = l.angle_rad.sin_cos();
             (l, s, c, l.half_width_m - self.params.wall_band_m)
         });
-        self.occupied_cells().filter(move |&[f, l]| match wall {
+        self.occupied_cells().map(move |[f, l]| {
             // the cell's offset left of the corridor's centre line
-            Some((lane, s, c, inner)) => (lane.left_m - f * s + l * c).abs() < inner,
-            None => true,
+            let banded = wall.is_some_and(|(lane, s, c, inner)| (lane.left_m - f * s + l * c).abs() >= inner);
+            ([f, l], banded)
         })
     }
 
@@ -452,15 +456,20 @@ impl ObstacleMemory {
         let path = p.robot_radius_m + p.path_margin_m;
         let horizon = self.horizon(reach_m);
         let mut best: [Option<(f64, [f64; 2])>; 2] = [None, None];
-        for [along, across] in self.obstacle_cells() {
+        for ([along, across], banded) in self.banded_cells() {
             // a round robot driving forward never meets what is beside or behind its origin
             if along <= -p.behind_m || along > horizon {
                 continue;
             }
+            // in the wall band, only what the body itself would hit: no margin, no side band
+            let (path, side_margin) = match banded {
+                true => (p.robot_radius_m, 0.0),
+                false => (path, p.side_margin_m),
+            };
             // the side band narrows to nothing at SIDE_REACH_M ahead: far cells count only in
             // the path, as before, and a cell fades out continuously wherever it leaves the band
             let beyond = across.abs() - path;
-            let band = p.side_margin_m * (1.0 - along / SIDE_REACH_M).max(0.0);
+            let band = side_margin * (1.0 - along / SIDE_REACH_M).max(0.0);
             let fade = match beyond <= 0.0 {
                 true => 0.0,
                 false if beyond < band => SIDE_FADE_M * beyond / band,
@@ -499,9 +508,11 @@ impl ObstacleMemory {
         let p = &self.params;
         let (s, c) = heading.sin_cos();
         let mut free = lookahead_m;
-        for [f, l] in self.obstacle_cells() {
+        for ([f, l], banded) in self.banded_cells() {
             let along = f * c + l * s;
             let across = (-f * s + l * c).abs();
+            // in the wall band, only what the body itself would hit blocks the way
+            let half = if banded { half.min(p.robot_radius_m) } else { half };
             if across <= half && along > -p.behind_m {
                 free = free.min(along.max(0.0));
             }
@@ -582,7 +593,7 @@ impl ObstacleMemory {
             left = left.min((lane.half_width_m - lane.left_m).max(0.0));
             right = right.min((lane.half_width_m + lane.left_m).max(0.0));
         }
-        for [f, l] in self.obstacle_cells() {
+        for [f, l] in self.banded_cells().filter(|c| !c.1).map(|c| c.0) {
             // beside the robot (down to its back) counts too: that is where a wall it scrapes is
             if !(-self.params.robot_radius_m..=window_m).contains(&f) {
                 continue;
@@ -903,23 +914,26 @@ mod tests {
     }
 
     #[test]
-    fn with_the_wall_band_cells_at_the_corridors_walls_are_left_to_the_lane() {
+    fn with_the_wall_band_cells_at_the_corridors_walls_only_stop_the_body() {
         // a 2 m corridor, the robot on its centre line; a box 0.35–0.55 m left of the line, 1 m
-        // ahead, and a door jamb's phantom 0.8 m right (0.2 m inside the wall) 0.7 m ahead
+        // ahead, and a door jamb's phantom 0.85 m right (0.15 m inside the wall) 0.75 m ahead
         let band = MemoryParams { wall_band_m: 0.25, ..memory().params };
         let mut m = ObstacleMemory::new(band, 26.7f64.to_radians(), 0.4);
-        let seen = [pt(1.0, 0.35), pt(1.0, 0.45), pt(1.0, 0.55), pt(0.7, -0.8)];
+        let seen = [pt(1.0, 0.35), pt(1.0, 0.45), pt(1.0, 0.55), pt(0.72, -0.83)];
         for _ in 0..3 {
             step(&mut m, STILL, 0.1, &seen);
         }
         assert_eq!(m.occupied().len(), 4, "the memory holds all it saw");
-        // without a lane, or with the band off, the phantom is an obstacle like the box
+        // a heading that passes the phantom's cell (centre 0.75, −0.85) 0.25 m away: inside the
+        // path margin (0.18 + 0.2 m), outside the body
+        let (range, bearing) = (0.75f64.hypot(-0.85), (-0.85f64).atan2(0.75));
+        let past = bearing + (0.25 / range).asin();
+        assert!(m.free_distance(past, 1.5) < 1.2, "without a lane the phantom is an obstacle");
         let lane = Lane { left_m: 0.0, angle_rad: 0.0, half_width_m: 1.0 };
-        let phantom_heading = (-0.8f64).atan2(0.7);
-        assert!(m.free_distance(phantom_heading, 1.5) < 1.0);
         m.set_lane(Some(lane));
-        assert!(m.free_distance(phantom_heading, 1.5) >= 1.5, "the phantom is the lane's wall");
-        assert!(m.free_distance(0.45f64.atan2(1.0), 1.5) < 1.2, "the box still blocks");
+        assert!(m.free_distance(past, 1.5) >= 1.5, "with it, the phantom is the lane's wall");
+        assert!(m.free_distance(bearing, 1.5) < 1.2, "but the body is not driven into it");
+        assert!(m.free_distance(0.45f64.atan2(1.0), 1.5) < 1.2, "the box still blocks with its margin");
         let [left, right] = m.threat_sides(f64::INFINITY);
         assert!(left.present && !right.present, "{left:?} {right:?}");
         // the lane's walls centre the robot: a box 0.35 m left, the right wall 1 m away
@@ -938,9 +952,9 @@ mod tests {
             step(&mut turned, STILL, 0.1, &[at(-0.35), at(-0.85)]);
         }
         assert_eq!(turned.occupied().len(), 2);
-        assert_eq!(turned.obstacle_cells().count(), 1, "{:?}", turned.occupied());
+        assert_eq!(turned.banded_cells().filter(|c| c.1).count(), 1, "{:?}", turned.occupied());
         let off = ObstacleMemory { params: MemoryParams { wall_band_m: 0.0, ..band }, ..turned.clone() };
-        assert_eq!(off.obstacle_cells().count(), 2, "band off: every occupied cell counts");
+        assert_eq!(off.banded_cells().filter(|c| c.1).count(), 0, "band off: no cell is the wall's");
     }
 
     #[test]
