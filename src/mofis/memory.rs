@@ -30,8 +30,8 @@
 //! narrows ahead), reported farther away the farther beyond the path it lies, with its bearing
 //! from the robot's origin ([`ObstacleMemory::threat_sides`]). Walls and boxes alike: a wall
 //! the robot drives at is in its path, a corridor wall beside it is not. In a corridor from the
-//! map ([`ObstacleMemory::set_lane`]), cells within `wall_band_m` of its walls are the walls':
-//! they count only against the robot's body, and the lane keeps the robot off the walls.
+//! map ([`ObstacleMemory::set_lane`]), cells within `wall_band_m` of its walls are the walls',
+//! and the lane, not the cells, keeps the robot off the walls.
 //!
 //! Pure and deterministic: the cells live in a `BTreeMap`, so the same inputs give the same
 //! outputs in the same order (replay is bit-exact).
@@ -91,12 +91,12 @@ pub struct MemoryParams {
     pub lane_margin_m: f64,
     /// With the corridor from the map ([`ObstacleMemory::set_lane`]), occupied cells less than
     /// this far inside its walls (or beyond them) are taken for the walls, which the lane
-    /// already keeps the robot from: they count only against the robot's body (no path margin,
-    /// no side band), and do not centre the robot (the lane's walls do that). Block-matching
-    /// depth at a door jamb's edge or a wall seen at a grazing angle puts such cells 0.1–0.26 m
-    /// inside the corridor, where, with the path margin, they narrowed the gap beside an
-    /// obstacle until the robot crept (seed 16). Something that really stands out of the wall
-    /// less than this is still not driven into. 0: off.
+    /// already keeps the robot from: they neither block a heading, nor count as a threat, nor
+    /// centre the robot (the lane's walls do that). Block-matching depth at a door jamb's edge
+    /// or a wall seen at a grazing angle puts such cells 0.1–0.26 m inside the corridor, where,
+    /// with the path margin, they narrowed the gap beside an obstacle until the robot crept
+    /// (seed 16). The price: in a corridor, something that stands out of a wall by less than
+    /// this is not seen (set 0 where such things are; docs/navigation.md). 0: off.
     pub wall_band_m: f64,
     /// Points are taken in only when the robot travelled at least this far forward over the
     /// frame interval, m: with less, the flow of anything but the nearest surfaces is below the
@@ -461,15 +461,14 @@ impl ObstacleMemory {
             if along <= -p.behind_m || along > horizon {
                 continue;
             }
-            // in the wall band, only what the body itself would hit: no margin, no side band
-            let (path, side_margin) = match banded {
-                true => (p.robot_radius_m, 0.0),
-                false => (path, p.side_margin_m),
-            };
+            // the walls are the lane's (what the memory has of them is depth error)
+            if banded {
+                continue;
+            }
             // the side band narrows to nothing at SIDE_REACH_M ahead: far cells count only in
             // the path, as before, and a cell fades out continuously wherever it leaves the band
             let beyond = across.abs() - path;
-            let band = side_margin * (1.0 - along / SIDE_REACH_M).max(0.0);
+            let band = p.side_margin_m * (1.0 - along / SIDE_REACH_M).max(0.0);
             let fade = match beyond <= 0.0 {
                 true => 0.0,
                 false if beyond < band => SIDE_FADE_M * beyond / band,
@@ -511,9 +510,7 @@ impl ObstacleMemory {
         for ([f, l], banded) in self.banded_cells() {
             let along = f * c + l * s;
             let across = (-f * s + l * c).abs();
-            // in the wall band, only what the body itself would hit blocks the way
-            let half = if banded { half.min(p.robot_radius_m) } else { half };
-            if across <= half && along > -p.behind_m {
+            if across <= half && along > -p.behind_m && !banded {
                 free = free.min(along.max(0.0));
             }
         }
@@ -914,7 +911,7 @@ mod tests {
     }
 
     #[test]
-    fn with_the_wall_band_cells_at_the_corridors_walls_only_stop_the_body() {
+    fn with_the_wall_band_cells_at_the_corridors_walls_are_left_to_the_lane() {
         // a 2 m corridor, the robot on its centre line; a box 0.35–0.55 m left of the line, 1 m
         // ahead, and a door jamb's phantom 0.85 m right (0.15 m inside the wall) 0.75 m ahead
         let band = MemoryParams { wall_band_m: 0.25, ..memory().params };
@@ -924,16 +921,13 @@ mod tests {
             step(&mut m, STILL, 0.1, &seen);
         }
         assert_eq!(m.occupied().len(), 4, "the memory holds all it saw");
-        // a heading that passes the phantom's cell (centre 0.75, −0.85) 0.25 m away: inside the
-        // path margin (0.18 + 0.2 m), outside the body
-        let (range, bearing) = (0.75f64.hypot(-0.85), (-0.85f64).atan2(0.75));
-        let past = bearing + (0.25 / range).asin();
-        assert!(m.free_distance(past, 1.5) < 1.2, "without a lane the phantom is an obstacle");
+        // the heading straight at the phantom's cell (centre 0.75, −0.85)
+        let at_phantom = (-0.85f64).atan2(0.75);
+        assert!(m.free_distance(at_phantom, 1.5) < 1.2, "without a lane the phantom is an obstacle");
         let lane = Lane { left_m: 0.0, angle_rad: 0.0, half_width_m: 1.0 };
         m.set_lane(Some(lane));
-        assert!(m.free_distance(past, 1.5) >= 1.5, "with it, the phantom is the lane's wall");
-        assert!(m.free_distance(bearing, 1.5) < 1.2, "but the body is not driven into it");
-        assert!(m.free_distance(0.45f64.atan2(1.0), 1.5) < 1.2, "the box still blocks with its margin");
+        assert!(m.free_distance(at_phantom, 1.5) >= 1.5, "with it, the phantom is the lane's wall");
+        assert!(m.free_distance(0.45f64.atan2(1.0), 1.5) < 1.2, "the box still blocks");
         let [left, right] = m.threat_sides(f64::INFINITY);
         assert!(left.present && !right.present, "{left:?} {right:?}");
         // the lane's walls centre the robot: a box 0.35 m left, the right wall 1 m away
