@@ -297,14 +297,17 @@ impl ObstacleMemory {
 
     /// The occupied cells, each with whether it lies in the wall band: less than `wall_band_m`
     /// inside the walls of the current lane, or beyond them ([`MemoryParams::wall_band_m`]).
+    /// A cell marked by a contact never does: what the robot touched is there, wall or not.
     fn banded_cells(&self) -> impl Iterator<Item = ([f64; 2], bool)> + '_ {
         let wall = self.lane.filter(|_| self.params.wall_band_m > 0.0).map(|l| {
             let (s, c) = l.angle_rad.sin_cos();
             (l, s, c, l.half_width_m - self.params.wall_band_m)
         });
-        self.occupied_cells().map(move |[f, l]| {
+        self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(move |(k, cell)| {
+            let [f, l] = self.to_robot(*k);
             // the cell's offset left of the corridor's centre line
-            let banded = wall.is_some_and(|(lane, s, c, inner)| (lane.left_m - f * s + l * c).abs() >= inner);
+            let banded =
+                !cell.contact && wall.is_some_and(|(lane, s, c, inner)| (lane.left_m - f * s + l * c).abs() >= inner);
             ([f, l], banded)
         })
     }
@@ -457,12 +460,9 @@ impl ObstacleMemory {
         let horizon = self.horizon(reach_m);
         let mut best: [Option<(f64, [f64; 2])>; 2] = [None, None];
         for ([along, across], banded) in self.banded_cells() {
-            // a round robot driving forward never meets what is beside or behind its origin
-            if along <= -p.behind_m || along > horizon {
-                continue;
-            }
-            // the walls are the lane's (what the memory has of them is depth error)
-            if banded {
+            // a round robot driving forward never meets what is beside or behind its origin; the
+            // walls are the lane's (what the memory has of them is depth error)
+            if along <= -p.behind_m || along > horizon || banded {
                 continue;
             }
             // the side band narrows to nothing at SIDE_REACH_M ahead: far cells count only in
@@ -949,6 +949,13 @@ mod tests {
         assert_eq!(turned.banded_cells().filter(|c| c.1).count(), 1, "{:?}", turned.occupied());
         let off = ObstacleMemory { params: MemoryParams { wall_band_m: 0.0, ..band }, ..turned.clone() };
         assert_eq!(off.banded_cells().filter(|c| c.1).count(), 0, "band off: no cell is the wall's");
+        // a contact at the wall is no depth error: it still blocks the way ahead
+        let mut touched = ObstacleMemory::new(band, 26.7f64.to_radians(), 0.4);
+        // (0.95 m left of the centre line: the whole arc lies in the band)
+        touched.set_lane(Some(Lane { left_m: 0.95, angle_rad: 0.0, half_width_m: 1.0 }));
+        touched.mark_contact(0.5);
+        assert!(touched.banded_cells().all(|(_, banded)| !banded));
+        assert!(touched.free_distance(0.0, 1.5) < 0.35, "{}", touched.free_distance(0.0, 1.5));
     }
 
     #[test]
