@@ -347,8 +347,7 @@ impl Pipeline {
         self.offis.surface_points([m.x_m, m.y_m, m.z_m], min_radial, max_tangential, &mut self.points);
         self.memory.update(odometry, frame_dt, &self.points, measured);
         // the corridor from the map: for the memory's queries, the escape and the steering
-        let lane = self.pafsis().and_then(Pafsis::lane);
-        self.memory.set_lane(lane);
+        self.memory.set_lane(self.pafsis().and_then(Pafsis::lane));
         // where the plan stops the robot (before a turn, at the goal): nothing beyond is in its way
         let stop_ahead = match &self.navigator {
             Navigator::Mission(pafsis) => pafsis.stop_ahead_m(),
@@ -390,8 +389,7 @@ impl Pipeline {
             None => {
                 let (memory, yaw) = (&self.memory, self.memory.yaw());
                 let look = self.escape.params().lookahead_m;
-                self.escape
-                    .apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| memory.free_in_lane(h, look, lane.as_ref()))
+                self.escape.apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| memory.free_in_lane(h, look))
             }
             Some(_) => goal,
         };
@@ -403,7 +401,7 @@ impl Pipeline {
             true => {
                 let centred = goal.angle_rad
                     + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                let angle_rad = self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD, lane.as_ref());
+                let angle_rad = self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD);
                 Goal { angle_rad, ..goal }
             }
             false => goal,

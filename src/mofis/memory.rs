@@ -290,21 +290,31 @@ impl ObstacleMemory {
         self.pose = Pose::default();
     }
 
-    /// The occupied cells' centres (evidence at `occupied`), robot frame (forward, left), m.
+    /// The occupied cells (evidence at `occupied`): their centres, robot frame (forward, left),
+    /// m, and the cells.
+    fn occupied_entries(&self) -> impl Iterator<Item = ([f64; 2], &Cell)> + '_ {
+        self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(|(k, c)| (self.to_robot(*k), c))
+    }
+
+    /// The occupied cells' centres, robot frame (forward, left), m.
     fn occupied_cells(&self) -> impl Iterator<Item = [f64; 2]> + '_ {
-        self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(|(k, _)| self.to_robot(*k))
+        self.occupied_entries().map(|(at, _)| at)
+    }
+
+    /// The current lane when the wall band is on: the walls are then its, not the cells'.
+    fn walled_lane(&self) -> Option<Lane> {
+        self.lane.filter(|_| self.params.wall_band_m > 0.0)
     }
 
     /// The occupied cells, each with whether it lies in the wall band: less than `wall_band_m`
     /// inside the walls of the current lane, or beyond them ([`MemoryParams::wall_band_m`]).
     /// A cell marked by a contact never does: what the robot touched is there, wall or not.
     fn banded_cells(&self) -> impl Iterator<Item = ([f64; 2], bool)> + '_ {
-        let wall = self.lane.filter(|_| self.params.wall_band_m > 0.0).map(|l| {
+        let wall = self.walled_lane().map(|l| {
             let (s, c) = l.angle_rad.sin_cos();
             (l, s, c, l.half_width_m - self.params.wall_band_m)
         });
-        self.cells.iter().filter(|(_, c)| c.evidence >= self.params.occupied).map(move |(k, cell)| {
-            let [f, l] = self.to_robot(*k);
+        self.occupied_entries().map(move |([f, l], cell)| {
             // the cell's offset left of the corridor's centre line
             let banded =
                 !cell.contact && wall.is_some_and(|(lane, s, c, inner)| (lane.left_m - f * s + l * c).abs() >= inner);
@@ -313,8 +323,9 @@ impl ObstacleMemory {
     }
 
     /// The corridor the robot is in now, from the map (`None`: not in one, or no map): the
-    /// queries below then leave the walls to it ([`MemoryParams::wall_band_m`]). Set each step
-    /// before the queries.
+    /// steering and the escape keep inside it ([`free_in_lane`](Self::free_in_lane)), and the
+    /// queries leave the walls to it ([`MemoryParams::wall_band_m`]). Set each step before the
+    /// queries.
     pub fn set_lane(&mut self, lane: Option<Lane>) {
         self.lane = lane;
     }
@@ -532,23 +543,23 @@ impl ObstacleMemory {
     }
 
     /// How far the path along `heading` (rad, robot frame) is free, up to `lookahead_m`: of
-    /// occupied cells ([`free_distance`](Self::free_distance)) and, with a `lane`, inside it
-    /// ([`lane_free_distance`](Self::lane_free_distance)).
-    pub fn free_in_lane(&self, heading: f64, lookahead_m: f64, lane: Option<&Lane>) -> f64 {
+    /// occupied cells ([`free_distance`](Self::free_distance)) and, in a lane
+    /// ([`set_lane`](Self::set_lane)), inside it ([`lane_free_distance`](Self::lane_free_distance)).
+    pub fn free_in_lane(&self, heading: f64, lookahead_m: f64) -> f64 {
         let seen = self.free_distance(heading, lookahead_m);
-        lane.map_or(seen, |l| seen.min(self.lane_free_distance(l, heading, lookahead_m)))
+        self.lane.as_ref().map_or(seen, |l| seen.min(self.lane_free_distance(l, heading, lookahead_m)))
     }
 
     /// The heading to drive instead of `goal_rad` (both rad, robot frame): `goal_rad` itself when
     /// its path is free for `lookahead_m`, else the candidate within `±max_rad` (steps of
     /// `step_rad`) nearest to the goal whose path is free that far, else the candidate with the
     /// longest free path (nearest to the goal on a tie). A vector-field-histogram-style
-    /// choice of gap; MOFIS still slows and swerves for what is close. With a `lane` (the
-    /// corridor from the map), a path is free only as far as it stays inside it
+    /// choice of gap; MOFIS still slows and swerves for what is close. In a lane (the corridor
+    /// from the map, [`set_lane`](Self::set_lane)), a path is free only as far as it stays inside it
     /// ([`lane_free_distance`](Self::lane_free_distance)): a doorway, or a wall not yet seen,
     /// is no gap to steer through.
-    pub fn steer(&self, goal_rad: f64, lookahead_m: f64, max_rad: f64, step_rad: f64, lane: Option<&Lane>) -> f64 {
-        let free_distance = |h: f64| self.free_in_lane(h, lookahead_m, lane);
+    pub fn steer(&self, goal_rad: f64, lookahead_m: f64, max_rad: f64, step_rad: f64) -> f64 {
+        let free_distance = |h: f64| self.free_in_lane(h, lookahead_m);
         if free_distance(goal_rad) >= lookahead_m {
             return goal_rad;
         }
@@ -586,7 +597,7 @@ impl ObstacleMemory {
     pub fn centring(&self, window_m: f64, reach_m: f64, lookahead_m: f64, max_rad: f64) -> f64 {
         let (mut left, mut right) = (reach_m, reach_m);
         // the lane's walls, where the wall band leaves the walls to it
-        if let Some(lane) = self.lane.filter(|_| self.params.wall_band_m > 0.0) {
+        if let Some(lane) = self.walled_lane() {
             left = left.min((lane.half_width_m - lane.left_m).max(0.0));
             right = right.min((lane.half_width_m + lane.left_m).max(0.0));
         }
@@ -862,11 +873,11 @@ mod tests {
             step(&mut m, STILL, 0.1, &bx);
         }
         assert!((m.free_distance(0.0, 1.5) - 1.05).abs() < 1e-9, "the box's cells start at 1.0 m");
-        let h = m.steer(0.0, 1.5, 0.7, 0.05, None);
+        let h = m.steer(0.0, 1.5, 0.7, 0.05);
         assert!(h > 0.0, "pass on the left, the short way round: {h}");
         assert!(m.free_distance(h, 1.5) >= 1.5);
         // a free goal direction is kept
-        assert_eq!(m.steer(0.6, 1.5, 0.7, 0.05, None), 0.6);
+        assert_eq!(m.steer(0.6, 1.5, 0.7, 0.05), 0.6);
     }
 
     #[test]
@@ -902,10 +913,11 @@ mod tests {
         for _ in 0..3 {
             step(&mut m, STILL, 0.1, &bx);
         }
-        let free = m.steer(0.0, 1.5, 0.7, 0.05, None);
+        let free = m.steer(0.0, 1.5, 0.7, 0.05);
         assert!(free > 0.0, "without the lane: left, through the door: {free}");
         let lane = Lane { left_m: 0.4, angle_rad: 0.0, half_width_m: 1.0 };
-        let h = m.steer(0.0, 1.5, 0.7, 0.05, Some(&lane));
+        m.set_lane(Some(lane));
+        let h = m.steer(0.0, 1.5, 0.7, 0.05);
         assert!(h < 0.0, "with the lane: right, the way inside the corridor: {h}");
         assert!(m.free_distance(h, 1.5) >= 1.5 && m.lane_free_distance(&lane, h, 1.5) >= 1.5, "{h}");
     }
