@@ -9,6 +9,10 @@
 //! as `run` does; `gpu_stream` uses `compute_pipelined` on that stream (the result of pair n is
 //! read while pair n+1 runs, one pair of latency).
 //!
+//! Before timing, each GPU engine's field on the benchmark frames must equal the CPU engine's
+//! exactly (panics otherwise), and it prints whether the dense fast path (cost volume) ran;
+//! `FLOWNAV_GPU_COST_VOLUME=0` benchmarks the per-block kernel instead.
+//!
 //! `cargo bench --bench flow_gpu` — the GPU is the first adapter wgpu finds (hardware first;
 //! `WGPU_BACKEND=vulkan|metal|dx12|gl` to choose). On a software adapter (lavapipe/llvmpipe)
 //! dense mode takes tens of seconds per frame, so it is only run there with
@@ -69,9 +73,29 @@ fn bench(c: &mut Criterion) {
             continue;
         }
         let mut engine = GpuFlow::new(Arc::clone(ctx), params.clone()).unwrap();
-        // Parity on the benchmark frames, and the warm-up that compiles the pipelines.
+        // Parity on the benchmark frames (exact: same vectors, flags, costs and bit-identical
+        // sub-pixel values as the CPU engine), and the warm-up that compiles the pipelines.
         let expected = cpu.compute(&a, &b).unwrap().clone();
-        assert_eq!(engine.compute(&a, &b).unwrap().vectors.len(), expected.vectors.len());
+        let got = engine.compute(&a, &b).unwrap().clone();
+        eprintln!(
+            "gpu/{name}: cost volume {} (FLOWNAV_GPU_COST_VOLUME={:?}), {} absolute differences per pair",
+            if engine.uses_cost_volume() { "on" } else { "off" },
+            std::env::var("FLOWNAV_GPU_COST_VOLUME").ok(),
+            engine.cost_volume_abs_diffs().map_or("per-block kernel".to_string(), |n| n.to_string()),
+        );
+        assert_eq!(got.vectors.len(), expected.vectors.len());
+        let differing = got.vectors.iter().zip(&expected.vectors).filter(|(g, c)| {
+            (g.x, g.y, g.validity, g.cost.to_bits(), g.u.to_bits(), g.v.to_bits())
+                != (c.x, c.y, c.validity, c.cost.to_bits(), c.u.to_bits(), c.v.to_bits())
+        });
+        let n_diff = differing.clone().count();
+        if let Some((g, c)) = differing.clone().next() {
+            panic!(
+                "gpu/{name}: {n_diff} of {} vectors differ from the CPU engine's, e.g. gpu {g:?} cpu {c:?}",
+                got.vectors.len()
+            );
+        }
+        eprintln!("gpu/{name}: field identical to the CPU engine's ({} vectors)", got.vectors.len());
         g.bench_function(format!("gpu/{name}"), |bch| {
             bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
         });

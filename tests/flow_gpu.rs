@@ -383,3 +383,158 @@ fn cli_gpu_backend_runs_or_names_what_to_install() {
     }
     std::fs::remove_dir_all(&tmp).ok();
 }
+
+// ---- The dense fast path (cost volume, `costvol.wgsl`) ------------------------------------
+
+/// GPU fields with the cost volume forced on and off, and the CPU field; asserts which path ran.
+fn three_ways(
+    ctx: &Arc<GpuContext>,
+    params: &FlowParams,
+    a: &LumaImage,
+    b: &LumaImage,
+) -> (FlowField, FlowField, FlowField) {
+    let mut g = GpuFlow::new(Arc::clone(ctx), params.clone()).expect("GPU engine");
+    g.set_cost_volume(Some(true));
+    let new = g.compute(a, b).expect("GPU flow, cost volume").clone();
+    assert!(g.uses_cost_volume(), "the cost volume applies to {params:?}");
+    g.set_cost_volume(Some(false));
+    let old = g.compute(a, b).expect("GPU flow, per-block kernel").clone();
+    assert!(!g.uses_cost_volume());
+    let cpu = CpuFlow::new(params.clone()).expect("CPU engine").compute(a, b).expect("CPU flow").clone();
+    (new, old, cpu)
+}
+
+/// Bit-identical fields (integer displacement, flags, costs and the f32 sub-pixel values).
+fn assert_identical(got: &FlowField, want: &FlowField, what: &str) {
+    assert_same(got, want, what);
+    for (i, (g, w)) in got.vectors.iter().zip(&want.vectors).enumerate() {
+        assert!(
+            g.u.to_bits() == w.u.to_bits() && g.v.to_bits() == w.v.to_bits(),
+            "{what}: block {i}: sub-pixel values differ: {g:?} vs {w:?}"
+        );
+    }
+}
+
+/// The cost volume, the per-block kernel and the CPU engine agree bit for bit.
+fn check_three(ctx: &Arc<GpuContext>, params: &FlowParams, a: &LumaImage, b: &LumaImage, what: &str) -> FlowField {
+    let (new, old, cpu) = three_ways(ctx, params, a, b);
+    assert_identical(&new, &cpu, &format!("{what}: cost volume vs CPU"));
+    assert_identical(&old, &cpu, &format!("{what}: per-block GPU kernel vs CPU"));
+    assert_identical(&new, &old, &format!("{what}: cost volume vs per-block GPU kernel"));
+    cpu
+}
+
+fn dense(stride: usize, block: usize, radius: usize) -> FlowParams {
+    FlowParams { stride: Some(stride), block, radius, backend: Backend::Gpu, ..FlowParams::default() }
+}
+
+fn count(f: &FlowField, v: flownav::flow::Validity) -> usize {
+    f.vectors.iter().filter(|x| x.validity == v).count()
+}
+
+#[test]
+fn cost_volume_random_subpixel_motion_with_gain_and_flat_patch() {
+    let Some(ctx) = context() else { return };
+    let mut rng = Rng(91);
+    for seed in 0..3 {
+        let (mx, my) = (rng.below(1100) as f64 / 100.0 - 5.5, rng.below(1100) as f64 / 100.0 - 5.5);
+        let (a, b) = pair(160, 120, 100 + seed, mx, my, seed == 1);
+        let p = dense(8, 32, 6);
+        let c = check_three(&ctx, &p, &a, &b, &format!("seed {seed}, motion ({mx:.2}, {my:.2})"));
+        assert!(c.valid_count() > 20, "seed {seed}: {} valid", c.valid_count());
+        if seed == 1 {
+            assert!(count(&c, flownav::flow::Validity::Textureless) > 0, "the flat patch is textureless");
+        }
+    }
+}
+
+#[test]
+fn cost_volume_unrelated_and_periodic_frames() {
+    let Some(ctx) = context() else { return };
+    let p = dense(8, 16, 5);
+    let (a, _) = pair(136, 96, 111, 0.0, 0.0, false);
+    let (_, b) = pair(136, 96, 112, 0.0, 0.0, false);
+    let c = check_three(&ctx, &p, &a, &b, "unrelated frames");
+    assert!(count(&c, flownav::flow::Validity::Ambiguous) > 0, "unrelated frames give ambiguous blocks");
+    // Only the tie-break decides between equal costs.
+    let stripes = |shift: usize| LumaImage::from_fn(136, 96, move |x, _| [20u8, 200, 90, 160][(x + shift) % 4]);
+    let checker = |shift: usize| {
+        LumaImage::from_fn(136, 96, move |x, y| if ((x + shift) / 3 + y / 3).is_multiple_of(2) { 40 } else { 220 })
+    };
+    let flat = LumaImage::from_fn(136, 96, |_, _| 77);
+    for (name, a, b) in
+        [("stripes", stripes(0), stripes(1)), ("checker", checker(0), checker(2)), ("flat", flat.clone(), flat.clone())]
+    {
+        check_three(&ctx, &p, &a, &b, name);
+        let reference = flownav::flow::reference::reference_flow(&p, &a, &b).expect("reference");
+        let mut g = GpuFlow::new(Arc::clone(&ctx), p.clone()).unwrap();
+        g.set_cost_volume(Some(true));
+        assert_same(g.compute(&a, &b).unwrap(), &reference, &format!("{name}: cost volume vs reference"));
+    }
+}
+
+#[test]
+fn cost_volume_motion_at_and_beyond_the_radius_and_borders() {
+    let Some(ctx) = context() else { return };
+    // Radius 4: motion exactly at the radius, and beyond it (the best candidate sits on the
+    // window's edge: out_of_frame); blocks at the frame borders have windows cut by the frame.
+    for (mx, my) in [(4.0, -4.0), (6.0, 2.0), (-7.5, -5.0)] {
+        let (a, b) = pair(136, 104, 121, mx, my, false);
+        let p = dense(8, 16, 4);
+        let c = check_three(&ctx, &p, &a, &b, &format!("motion ({mx}, {my})"));
+        assert!(count(&c, flownav::flow::Validity::OutOfFrame) > 0, "({mx}, {my}): edge blocks");
+    }
+    // A tiled grid (blocks touching each other and the border, no overlap) with the path forced.
+    let (a, b) = pair(128, 96, 122, 3.0, -2.0, true);
+    let p = FlowParams { placement: Placement::Tile, ..small(6, 8, 16, 5) };
+    check_three(&ctx, &p, &a, &b, "tiled grid, forced");
+}
+
+#[test]
+fn cost_volume_odd_sizes_small_stride_and_large_radius() {
+    let Some(ctx) = context() else { return };
+    // Odd frame width and height, block sides that are not multiples of 4, raw intensities.
+    let (a, b) = pair(149, 101, 131, 2.3, -1.6, true);
+    for (stride, block, k) in [(8, 18, 4), (8, 10, 0), (4, 6, 4), (4, 14, 2)] {
+        let p = FlowParams { prefilter_radius: k, ..dense(stride, block, 5) };
+        check_three(&ctx, &p, &a, &b, &format!("149x101, stride {stride}, block {block}, prefilter {k}"));
+    }
+    // Radius 40 (81 × 81 candidates, cut by the 96×64 frame) at stride 4.
+    let (a, b) = pair(96, 64, 132, -17.0, 12.0, false);
+    let p = FlowParams { ambiguity_ratio: 0.5, ..dense(4, 8, 40) };
+    check_three(&ctx, &p, &a, &b, "stride 4, radius 40");
+}
+
+#[test]
+fn cost_volume_dispatch_and_fallback() {
+    let Some(ctx) = context() else { return };
+    let (a, b) = pair(136, 96, 141, 1.0, 2.0, false);
+    let run = |p: &FlowParams, mode: Option<bool>| {
+        let mut g = GpuFlow::new(Arc::clone(&ctx), p.clone()).unwrap();
+        g.set_cost_volume(mode);
+        let f = g.compute(&a, &b).unwrap().clone();
+        (g.uses_cost_volume(), f)
+    };
+    // Default: dense grids (blocks overlapping ≥ 2× along both axes) take the cost volume...
+    assert!(run(&dense(8, 32, 4), None).0, "dense stride 8, block 32");
+    assert!(!run(&dense(8, 16, 4), None).0, "block 16 at steps of 9 and 12 px: overlap < 2");
+    // ... sparse grids and pyramids the per-block kernel, even when forced.
+    assert!(!run(&small(4, 5, 16, 4), None).0, "16 px blocks 27 px apart");
+    let pyr = FlowParams { pyramid_levels: 2, refine_radius: 2, ..dense(8, 16, 3) };
+    let (used, f) = run(&pyr, Some(true));
+    assert!(!used, "pyramids never use the cost volume");
+    let cpu = CpuFlow::new(pyr.clone()).unwrap().compute(&a, &b).unwrap().clone();
+    assert_identical(&f, &cpu, "pyramid, forced: fell back");
+    // The switch changes the path on a live engine, and the results stay identical.
+    let p = dense(8, 32, 4);
+    let mut g = GpuFlow::new(Arc::clone(&ctx), p.clone()).unwrap();
+    let mut fields = Vec::new();
+    for mode in [Some(true), Some(false), None, Some(true)] {
+        g.set_cost_volume(mode);
+        fields.push(g.compute(&a, &b).unwrap().clone());
+        assert_eq!(g.uses_cost_volume(), mode != Some(false));
+    }
+    for f in &fields[1..] {
+        assert_identical(f, &fields[0], "switching paths");
+    }
+}

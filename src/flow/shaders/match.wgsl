@@ -5,6 +5,8 @@
 // of B that the band needs are cached in workgroup memory; each invocation accumulates the full
 // SAD of its PER candidates. Costs are exact integers; the best candidate and the ambiguity
 // flag come from workgroup reductions, so the result equals the exhaustive CPU search.
+// With PRE (the dense single-level fast path) the SAD loop is skipped: the costs were computed
+// by costvol.wgsl into gcost, in the same layout, and only the reductions run here.
 
 struct Lv {
     w: u32, h: u32, ws: u32, ws_src: u32,
@@ -104,7 +106,10 @@ fn cost_get(base: u32, j: u32) -> u32 {
     if COSTS_WG {
         return wcost[j];
     }
-    return gcost[base + j];
+    if base + j < arrayLength(&gcost) {
+        return gcost[base + j];
+    }
+    return 0xffffffffu;
 }
 
 // Lower median (index (n - 1) / 2) of the first n values.
@@ -179,7 +184,23 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
 
     var best_c = 0xffffffffu;
     var best_k = 0xffffffffu;
-    let nbands = (ny + TY - 1u) / TY;
+    if PRE {
+        // Dense fast path: costvol.wgsl has written every candidate's cost into gcost (a
+        // previous dispatch). Order the atomics' initialisation above before their use below.
+        workgroupBarrier();
+        for (var j = tid; j < nx * ny; j += WG) {
+            let cy = j / nx;
+            let cx = j - cy * nx;
+            let c = cost_get(gbase, j);
+            let e = vec2<i32>(lo.x + i32(cx), lo.y + i32(cy)) - p;
+            let key = (u32(e.x * e.x + e.y * e.y) << 16u) | (cy << 8u) | cx;
+            if c < best_c || (c == best_c && key < best_k) {
+                best_c = c;
+                best_k = key;
+            }
+        }
+    }
+    let nbands = select((ny + TY - 1u) / TY, 0u, PRE);
     for (var band = 0u; band < nbands; band++) {
         let ty0 = band * TY;
         let tyb = min(TY, ny - ty0);

@@ -1,0 +1,69 @@
+#!/bin/sh
+# GPU device check for the dense fast path (cost volume, docs/gpu.md "Dense mode"): parity tests
+# and a short benchmark of both GPU paths, from prebuilt binaries, on a machine without a Rust
+# toolchain or network (x86-64 Linux with a Vulkan driver). Takes about 1–2 minutes on an H100;
+# everything is capped by `timeout` so the whole run stays under 4 minutes.
+#
+# Build the binaries HERE (the build machine), from the repository root:
+#
+#   cargo test --release --test flow_gpu --no-run --message-format=json \
+#       | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' > /tmp/flow_gpu_exe
+#   cargo bench --bench flow_gpu --no-run --message-format=json \
+#       | sed -n 's/.*"executable":"\([^"]*\)".*/\1/p' > /tmp/flow_gpu_bench_exe
+#   mkdir -p .devbin
+#   cp "$(cat /tmp/flow_gpu_exe)" .devbin/flow_gpu_test
+#   cp "$(cat /tmp/flow_gpu_bench_exe)" .devbin/flow_gpu_bench
+#   strip .devbin/flow_gpu_test .devbin/flow_gpu_bench      # optional: smaller to ship
+#
+# (.devbin/ is untracked and not ignored, so the device tool copies it with the working tree;
+# do not commit it.) Then on the device machine, from the repository root:
+#
+#   bench/gpu_device_check.sh [BINDIR]      # BINDIR defaults to .devbin; results in $OUT if set
+#
+# What it runs:
+#   1. the flow_gpu test binary, --test-threads 4 (parity of both GPU paths with the CPU engine,
+#      bit-identical). `cli_gpu_backend_runs_or_names_what_to_install` is skipped: it runs the
+#      `flownav` binary at the absolute path baked in at build time, which does not exist there.
+#   2. the flow_gpu benchmark (criterion, short: warm-up 1 s, measurement 3 s), groups
+#      gpu/{default,dense} and gpu_stream_wait/{default,dense}, once with the cost volume on
+#      where it applies (the default) and once with FLOWNAV_GPU_COST_VOLUME=0 (the per-block
+#      kernel only). The benchmark first checks that the GPU field equals the CPU engine's field
+#      exactly on its 720p frames (it panics otherwise: that is how a parity failure shows).
+set -u
+cd "$(dirname "$0")/.."
+BIN=${1:-.devbin}
+OUTDIR=${OUT:-$PWD/.devout}
+mkdir -p "$OUTDIR"
+export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp/xdg-$(id -u)}
+mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
+export FLOWNAV_DATA=${FLOWNAV_DATA:-$PWD/data}
+export RUST_BACKTRACE=1
+status=0
+
+log() { echo "== $*" | tee -a "$OUTDIR/summary.txt"; }
+
+log "$(date -u +%FT%TZ) device check in $PWD, binaries in $BIN"
+command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader \
+    | tee -a "$OUTDIR/summary.txt"
+
+# 1. parity tests
+timeout 120 "$BIN/flow_gpu_test" --test-threads 4 --skip cli_gpu_backend_runs_or_names_what_to_install \
+    >"$OUTDIR/tests.txt" 2>&1
+rc=$?
+log "flow_gpu tests: exit $rc ($(grep -E '^test result' "$OUTDIR/tests.txt" | tail -1))"
+grep -E '^GPU flow tests on|FAILED|panicked' "$OUTDIR/tests.txt" | head -40 | tee -a "$OUTDIR/summary.txt"
+[ "$rc" = 0 ] || status=1
+
+# 2. benchmarks, new path (default) then old path
+FILTER='flow_gpu_720p/gpu(_stream_wait)?/(default|dense)$'
+for mode in new old; do
+    if [ "$mode" = old ]; then cv=0; else cv=; fi
+    FLOWNAV_GPU_COST_VOLUME=$cv timeout 100 "$BIN/flow_gpu_bench" --bench --warm-up-time 1 --measurement-time 3 \
+        --noplot "$FILTER" >"$OUTDIR/bench_$mode.txt" 2>&1
+    rc=$?
+    log "bench ($mode path, FLOWNAV_GPU_COST_VOLUME=${cv:-unset}): exit $rc"
+    grep -E '^GPU:|cost volume|panicked|flow_gpu_720p/|time:' "$OUTDIR/bench_$mode.txt" | tee -a "$OUTDIR/summary.txt"
+    [ "$rc" = 0 ] || status=1
+done
+log "done, status $status"
+exit $status

@@ -1,0 +1,171 @@
+// Dense single-level fast path, kernel A: the cost volume (docs/gpu.md, "Dense mode").
+//
+// Blocks overlap (at stride 8 with 32 px blocks every pixel lies in 16 blocks), so the
+// per-pixel absolute differences |A(p) − B(p + d)| are shared: a workgroup takes a tile of
+// TC × TR blocks and one candidate row dy (workgroup_id = (tile column, tile row, dy + R)),
+// and for groups of G candidate columns dx:
+//   phase 1: each invocation owns one (dx, pixel column x) of the tile's region and walks down
+//            the region's rows once, keeping the running column sum S(y) of the differences;
+//            at each block row's first row it stores S, at its end row it stores S − stored,
+//            i.e. the column sum over that block row's BL rows: V[dx][r][x] (workgroup memory,
+//            each entry written and re-read only by the invocation that owns it);
+//   barrier;
+//   phase 2: each invocation sums B consecutive V columns into one block's cost at (dx, dy)
+//            and writes it into the block's cost grid (the layout match.wgsl uses with global
+//            costs: bi·ND² + (dy − lo.y)·nx + (dx − lo.x)) when d is in the block's window;
+//   barrier (V is overwritten by the next group).
+// Integer sums, so the costs equal the CPU engine's SADs exactly. Every buffer and array index
+// is bounds-checked; pixels of B outside the frame read as 0 explicitly, and only enter
+// candidates outside the block's window, which are never written. Barriers are in uniform
+// control flow only (their loops depend on constants and workgroup-uniform values).
+//
+// The Rust side prepends: WG, BL (block side), R (radius), ND (2R+1), TC, TR (tile), G (dx per
+// group), RWM (widest tile region, px), VSN (= G·RWM·TR), CST/RST (tile-table strides),
+// ROWBASE (offset of the row-tile table).
+//
+// Tile table `tiles` (u32): column tile tc at tc·CST: [X0, region width, valid columns];
+// row tile tr at ROWBASE + tr·RST: [Y0, region height, valid rows, n events, events...], each
+// event (y << 12) | (r << 1) | end, sorted by y: block row r of the tile starts (end = 0) or
+// ends (end = 1) before region row y.
+
+struct Lv {
+    w: u32, h: u32, ws: u32, ws_src: u32,
+    k: u32, n: u32, rows: u32, cols: u32,
+    coarsest: u32, radius: u32, q: u32, level: u32,
+}
+
+@group(0) @binding(0) var<uniform> lv: Lv;
+@group(0) @binding(1) var<storage, read> hpa: array<u32>;
+@group(0) @binding(2) var<storage, read> hpb: array<u32>;
+@group(0) @binding(3) var<storage, read> orig: array<vec2<u32>>;
+@group(0) @binding(4) var<storage, read> tiles: array<u32>;
+@group(0) @binding(5) var<storage, read_write> gcost: array<u32>;
+
+var<workgroup> vs: array<u32, VSN>;
+
+fn tile(i: u32) -> u32 {
+    if i < arrayLength(&tiles) {
+        return tiles[i];
+    }
+    return 0u;
+}
+
+// Pixel (x, y) of frame A (inside the frame by construction; checked anyway).
+fn pix_a(x: u32, y: u32) -> u32 {
+    if x >= lv.w || y >= lv.h {
+        return 0u;
+    }
+    let i = y * lv.ws + (x >> 2u);
+    if i >= arrayLength(&hpa) {
+        return 0u;
+    }
+    return (hpa[i] >> ((x & 3u) * 8u)) & 255u;
+}
+
+// Pixel (x, y) of frame B; 0 outside the frame (only read for candidates that are cut away).
+fn pix_b(x: i32, y: i32) -> u32 {
+    if x < 0 || y < 0 || x >= i32(lv.w) || y >= i32(lv.h) {
+        return 0u;
+    }
+    let i = u32(y) * lv.ws + (u32(x) >> 2u);
+    if i >= arrayLength(&hpb) {
+        return 0u;
+    }
+    return (hpb[i] >> ((u32(x) & 3u) * 8u)) & 255u;
+}
+
+@compute @workgroup_size(WG, 1, 1)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) tid: u32) {
+    let cb = wid.x * CST;
+    let rb = ROWBASE + wid.y * RST;
+    let dy = i32(wid.z) - i32(R);
+    let x0t = tile(cb);
+    let rw = min(tile(cb + 1u), RWM);
+    let ncv = min(tile(cb + 2u), TC);
+    let y0t = tile(rb);
+    let rh = tile(rb + 1u);
+    let nrv = min(tile(rb + 2u), TR);
+    let nev = min(tile(rb + 3u), 2u * TR);
+    let ngroups = (ND + G - 1u) / G;
+
+    for (var grp = 0u; grp < ngroups; grp++) {
+        let g0 = grp * G;
+        // Phase 1: column sums of |A − B(· + d)| over each block row, per (dx, column).
+        for (var it = tid; it < G * RWM; it += WG) {
+            let g = it / RWM;
+            let xl = it - g * RWM;
+            let dxi = g0 + g;
+            if xl < rw && dxi < ND {
+                let ax = x0t + xl;
+                let bx = i32(ax) + i32(dxi) - i32(R);
+                var s = 0u;
+                var y = 0u;
+                for (var e = 0u; e < nev; e++) {
+                    let ev = tile(rb + 4u + e);
+                    let ye = min(ev >> 12u, rh);
+                    while y < ye {
+                        let a = pix_a(ax, y0t + y);
+                        let b = pix_b(bx, i32(y0t + y) + dy);
+                        s += max(a, b) - min(a, b);
+                        y++;
+                    }
+                    let r = (ev >> 1u) & 2047u;
+                    let k = (g * TR + r) * RWM + xl;
+                    if r < TR && k < VSN {
+                        if (ev & 1u) == 0u {
+                            vs[k] = s;
+                        } else {
+                            vs[k] = s - vs[k];
+                        }
+                    }
+                }
+            }
+        }
+        workgroupBarrier();
+        // Phase 2: block costs = sums of BL consecutive column sums.
+        for (var it = tid; it < G * TR * TC; it += WG) {
+            let g = it / (TR * TC);
+            let rem = it - g * (TR * TC);
+            let r = rem / TC;
+            let c = rem - r * TC;
+            let dxi = g0 + g;
+            if dxi < ND && r < nrv && c < ncv {
+                let row = wid.y * TR + r;
+                let col = wid.x * TC + c;
+                let bi = row * lv.cols + col;
+                if row < lv.rows && col < lv.cols && bi < arrayLength(&orig) {
+                    let o = orig[bi];
+                    let dx = i32(dxi) - i32(R);
+                    let x0 = i32(o.x);
+                    let y0 = i32(o.y);
+                    let bl = i32(BL);
+                    // The block's window, exactly as match.wgsl and the CPU engine cut it.
+                    let fmin = vec2<i32>(-x0, -y0);
+                    let fmax = vec2<i32>(i32(lv.w) - bl - x0, i32(lv.h) - bl - y0);
+                    let p = clamp(vec2<i32>(0, 0), fmin, fmax);
+                    let rad = i32(R);
+                    let lo = max(p - vec2<i32>(rad), fmin);
+                    let hi = min(p + vec2<i32>(rad), fmax);
+                    let xl = o.x - x0t;
+                    if dx >= lo.x && dx <= hi.x && dy >= lo.y && dy <= hi.y && o.x >= x0t && xl + BL <= rw {
+                        var s = 0u;
+                        let vb = (g * TR + r) * RWM + xl;
+                        for (var i = 0u; i < BL; i++) {
+                            let k = vb + i;
+                            if k < VSN {
+                                s += vs[k];
+                            }
+                        }
+                        let nx = u32(hi.x - lo.x + 1);
+                        let j = u32(dy - lo.y) * nx + u32(dx - lo.x);
+                        let gi = bi * ND * ND + j;
+                        if gi < arrayLength(&gcost) {
+                            gcost[gi] = s;
+                        }
+                    }
+                }
+            }
+        }
+        workgroupBarrier();
+    }
+}
