@@ -38,6 +38,7 @@ export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp/xdg-$(id -u)}
 mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
 export FLOWNAV_DATA=${FLOWNAV_DATA:-$PWD/data}
 export RUST_BACKTRACE=1
+export CRITERION_HOME=${CRITERION_HOME:-/tmp/flownav-criterion}
 status=0
 
 log() { echo "== $*" | tee -a "$OUTDIR/summary.txt"; }

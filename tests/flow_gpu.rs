@@ -538,3 +538,28 @@ fn cost_volume_dispatch_and_fallback() {
         assert_identical(f, &fields[0], "switching paths");
     }
 }
+
+#[test]
+fn cost_volume_timing_information() {
+    // Information only (no timed assertion): both GPU paths on one dense pair, printed.
+    let Some(ctx) = context() else { return };
+    let (a, b) = pair(256, 192, 151, 2.5, -1.5, false);
+    let p = dense(8, 32, 8);
+    let mut g = GpuFlow::new(Arc::clone(&ctx), p.clone()).unwrap();
+    let mut fields = Vec::new();
+    for mode in [Some(true), Some(false)] {
+        g.set_cost_volume(mode);
+        g.compute(&a, &b).unwrap(); // pipelines and buffers
+        let t = std::time::Instant::now();
+        let f = g.compute(&a, &b).unwrap().clone();
+        eprintln!(
+            "256x192 dense (stride 8, block 32, radius 8), cost volume {}: {:.1} ms per pair ({} absolute differences)",
+            if g.uses_cost_volume() { "on" } else { "off" },
+            t.elapsed().as_secs_f64() * 1e3,
+            g.cost_volume_abs_diffs()
+                .map_or(format!("at most {} per-block", f.vectors.len() * 17 * 17 * 32 * 32), |n| n.to_string()),
+        );
+        fields.push(f);
+    }
+    assert_identical(&fields[0], &fields[1], "timed pair");
+}
