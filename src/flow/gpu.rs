@@ -300,6 +300,7 @@ impl CostVolShape {
         format!(
             "const WG: u32 = {wg}u;\nconst BL: u32 = {bl}u;\nconst R: u32 = {r}u;\nconst ND: u32 = {nd}u;\n\
              const TC: u32 = {tc}u;\nconst TR: u32 = {tr}u;\nconst G: u32 = {g}u;\nconst RWM: u32 = {rwm}u;\n\
+             const RWQ: u32 = {rwq}u;\n\
              const VSN: u32 = {vsn}u;\nconst CST: u32 = {cst}u;\nconst RST: u32 = {rst}u;\n\
              const ROWBASE: u32 = {rowbase}u;\n{body}",
             wg = self.wg,
@@ -310,6 +311,7 @@ impl CostVolShape {
             tr = self.tr,
             g = self.g,
             rwm = self.rwm,
+            rwq = self.rwm.div_ceil(4),
             vsn = self.g * self.rwm * self.tr,
             cst = CV_CST,
             rst = cv_rst(self.tr),
@@ -370,10 +372,10 @@ fn plan_cost_volume(
                 break;
             }
             let groups = nd.div_ceil(u64::from(g));
-            let rounds1 = u64::from(g * rwm).div_ceil(u64::from(wg));
+            let rounds1 = u64::from(g * rwm.div_ceil(4)).div_ceil(u64::from(wg));
             let rounds2 = u64::from(g * tr * tc).div_ceil(u64::from(wg));
             // Serial steps per workgroup (walks, block sums, barriers), times workgroups.
-            let cost = ntiles * nd * groups * (rounds1 * rhm * 4 + rounds2 * u64::from(block) + 64);
+            let cost = ntiles * nd * groups * (rounds1 * rhm * 8 + rounds2 * u64::from(block) + 64);
             if best.is_none_or(|(c, _)| cost < c) {
                 best = Some((cost, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, rowbase: 0 }));
             }
@@ -1250,7 +1252,7 @@ mod tests {
                                 let xl = ox as u32 - x0t;
                                 assert!(xl + s.block <= rw);
                                 let sum = (0..s.block).map(|i| v[((xl + i) * s.tr + rr) as usize]).sum();
-                                costs[bi][((dy - win.lo.1) as usize * win.width() + (dx - win.lo.0) as usize)] = sum;
+                                costs[bi][(dy - win.lo.1) as usize * win.width() + (dx - win.lo.0) as usize] = sum;
                             }
                         }
                     }
@@ -1294,7 +1296,7 @@ mod tests {
                                 })
                                 .sum();
                             assert_eq!(
-                                costs[bi][((dy - win.lo.1) as usize * win.width() + (dx - win.lo.0) as usize)],
+                                costs[bi][(dy - win.lo.1) as usize * win.width() + (dx - win.lo.0) as usize],
                                 sad,
                                 "{w}x{h} block {bi} d ({dx}, {dy}) {plan:?}"
                             );

@@ -4,7 +4,8 @@
 // per-pixel absolute differences |A(p) − B(p + d)| are shared: a workgroup takes a tile of
 // TC × TR blocks and one candidate row dy (workgroup_id = (tile column, tile row, dy + R)),
 // and for groups of G candidate columns dx:
-//   phase 1: each invocation owns one (dx, pixel column x) of the tile's region and walks down
+//   phase 1: each invocation owns one dx and 4 adjacent pixel columns of the tile's region
+//            (one packed word of A and of B per row, read with funnel shifts) and walks down
 //            the region's rows once, keeping the running column sum S(y) of the differences;
 //            at each block row's first row it stores S, at its end row it stores S − stored,
 //            i.e. the column sum over that block row's BL rows: V[dx][r][x] (workgroup memory,
@@ -20,7 +21,7 @@
 // control flow only (their loops depend on constants and workgroup-uniform values).
 //
 // The Rust side prepends: WG, BL (block side), R (radius), ND (2R+1), TC, TR (tile), G (dx per
-// group), RWM (widest tile region, px), VSN (= G·RWM·TR), CST/RST (tile-table strides),
+// group), RWM (widest tile region, px), RWQ (= ⌈RWM/4⌉), VSN (= G·RWM·TR), CST/RST (tile-table strides),
 // ROWBASE (offset of the row-tile table).
 //
 // Tile table `tiles` (u32): column tile tc at tc·CST: [X0, region width, valid columns];
@@ -50,28 +51,37 @@ fn tile(i: u32) -> u32 {
     return 0u;
 }
 
-// Pixel (x, y) of frame A (inside the frame by construction; checked anyway).
-fn pix_a(x: u32, y: u32) -> u32 {
-    if x >= lv.w || y >= lv.h {
+// Word `wx` of row `y` of frame A or B (`b`), 0 outside the rows' words or the buffer.
+fn word(b: bool, wx: i32, y: i32) -> u32 {
+    if wx < 0 || y < 0 || wx >= i32(lv.ws) || y >= i32(lv.h) {
         return 0u;
     }
-    let i = y * lv.ws + (x >> 2u);
-    if i >= arrayLength(&hpa) {
-        return 0u;
+    let i = u32(y) * lv.ws + u32(wx);
+    if b {
+        if i < arrayLength(&hpb) {
+            return hpb[i];
+        }
+    } else if i < arrayLength(&hpa) {
+        return hpa[i];
     }
-    return (hpa[i] >> ((x & 3u) * 8u)) & 255u;
+    return 0u;
 }
 
-// Pixel (x, y) of frame B; 0 outside the frame (only read for candidates that are cut away).
-fn pix_b(x: i32, y: i32) -> u32 {
-    if x < 0 || y < 0 || x >= i32(lv.w) || y >= i32(lv.h) {
-        return 0u;
+// The 4 pixels (x .. x+3, y) of frame A or B, any alignment, packed low byte first. Pixels
+// outside the frame's rows read as 0 (or as the row padding past the width): they only enter
+// columns or candidates that no block uses (see phase 2), never a cost that is written.
+fn quad(b: bool, x: i32, y: i32) -> u32 {
+    let wx = x >> 2u;
+    let sh = u32(x & 3) * 8u;
+    let lo = word(b, wx, y);
+    if sh == 0u {
+        return lo;
     }
-    let i = u32(y) * lv.ws + (u32(x) >> 2u);
-    if i >= arrayLength(&hpb) {
-        return 0u;
-    }
-    return (hpb[i] >> ((u32(x) & 3u) * 8u)) & 255u;
+    return (lo >> sh) | (word(b, wx + 1, y) << (32u - sh));
+}
+
+fn unpack(w: u32) -> vec4<u32> {
+    return vec4<u32>(w & 255u, (w >> 8u) & 255u, (w >> 16u) & 255u, w >> 24u);
 }
 
 @compute @workgroup_size(WG, 1, 1)
@@ -90,32 +100,37 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
 
     for (var grp = 0u; grp < ngroups; grp++) {
         let g0 = grp * G;
-        // Phase 1: column sums of |A − B(· + d)| over each block row, per (dx, column).
-        for (var it = tid; it < G * RWM; it += WG) {
-            let g = it / RWM;
-            let xl = it - g * RWM;
+        // Phase 1: column sums of |A − B(· + d)| over each block row, per (dx, column); each
+        // invocation takes 4 adjacent columns (one packed word of each frame per row).
+        for (var it = tid; it < G * RWQ; it += WG) {
+            let g = it / RWQ;
+            let xq = 4u * (it - g * RWQ);
             let dxi = g0 + g;
-            if xl < rw && dxi < ND {
-                let ax = x0t + xl;
-                let bx = i32(ax) + i32(dxi) - i32(R);
-                var s = 0u;
+            if xq < rw && dxi < ND {
+                let ax = i32(x0t + xq);
+                let bx = ax + i32(dxi) - i32(R);
+                var s = vec4<u32>(0u);
                 var y = 0u;
                 for (var e = 0u; e < nev; e++) {
                     let ev = tile(rb + 4u + e);
                     let ye = min(ev >> 12u, rh);
                     while y < ye {
-                        let a = pix_a(ax, y0t + y);
-                        let b = pix_b(bx, i32(y0t + y) + dy);
+                        let ay = i32(y0t + y);
+                        let a = unpack(quad(false, ax, ay));
+                        let b = unpack(quad(true, bx, ay + dy));
                         s += max(a, b) - min(a, b);
                         y++;
                     }
                     let r = (ev >> 1u) & 2047u;
-                    let k = (g * TR + r) * RWM + xl;
-                    if r < TR && k < VSN {
-                        if (ev & 1u) == 0u {
-                            vs[k] = s;
-                        } else {
-                            vs[k] = s - vs[k];
+                    for (var i = 0u; i < 4u; i++) {
+                        let xl = xq + i;
+                        let k = (g * TR + r) * RWM + xl;
+                        if r < TR && xl < rw && k < VSN {
+                            if (ev & 1u) == 0u {
+                                vs[k] = s[i];
+                            } else {
+                                vs[k] = s[i] - vs[k];
+                            }
                         }
                     }
                 }
