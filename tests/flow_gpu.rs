@@ -563,3 +563,27 @@ fn cost_volume_timing_information() {
     }
     assert_identical(&fields[0], &fields[1], "timed pair");
 }
+
+#[test]
+fn cost_volume_forced_tile_shapes_match() {
+    // Other tiles and dx groups than the planner's: one group per dx (33 groups, 66 barriers),
+    // all 33 dx in one group (several rounds per phase), tiles of one block, odd tiles, a tile
+    // wider than the grid. Each must equal the CPU engine bit for bit.
+    let Some(ctx) = context() else { return };
+    let (a, b) = pair(160, 120, 161, -3.3, 4.6, true);
+    let p = dense(8, 32, 16);
+    let cpu = CpuFlow::new(p.clone()).unwrap().compute(&a, &b).unwrap().clone();
+    let mut g = GpuFlow::new(Arc::clone(&ctx), p.clone()).unwrap();
+    g.set_cost_volume(Some(true));
+    for tile in [(1, 1, 1), (4, 4, 1), (4, 4, 33), (16, 8, 3), (8, 4, 7), (3, 5, 4), (32, 2, 3)] {
+        g.set_cost_volume_tile(Some(tile));
+        let f = g.compute(&a, &b).unwrap().clone();
+        let used = g.cost_volume_tile();
+        eprintln!("forced tile {tile:?}: cost volume {used:?}");
+        if tile != (4, 4, 33) {
+            // (4, 4, 33) needs 29.5 KB of workgroup memory and may fall back
+            assert_eq!(used, Some(tile), "{tile:?} fits 16 KiB of workgroup memory");
+        }
+        assert_identical(&f, &cpu, &format!("tile {tile:?}"));
+    }
+}

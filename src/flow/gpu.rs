@@ -342,6 +342,7 @@ fn cv_tiles(pos: &[u32], t: usize, block: u32) -> Vec<(u32, u32, usize)> {
 /// Plans the cost-volume path for blocks at `origins` (a `rows × cols` grid, single level), or
 /// `None` where it does not apply: origins not a product grid sorted along both axes, a
 /// window wider than 255 candidates, or no tile whose workgroup memory fits `budget`.
+/// `force` = (TC, TR, G) replaces the planner's choice (tests), still within `budget`.
 fn plan_cost_volume(
     origins: &[(usize, usize)],
     (rows, cols): (usize, usize),
@@ -349,8 +350,12 @@ fn plan_cost_volume(
     radius: usize,
     wg: u32,
     budget: u32,
+    force: Option<(u32, u32, u32)>,
 ) -> Option<CostVolPlan> {
     if rows == 0 || cols == 0 || origins.len() != rows * cols || 2 * radius + 1 > 255 || block == 0 {
+        return None;
+    }
+    if force.is_some_and(|(tc, tr, g)| !(1..=64).contains(&tc) || !(1..=64).contains(&tr) || g == 0) {
         return None;
     }
     let xs: Vec<u32> = (0..cols).map(|c| origins[c].0 as u32).collect();
@@ -361,13 +366,16 @@ fn plan_cost_volume(
     }
     let (block, nd) = (block as u32, (2 * radius + 1) as u64);
     let mut best: Option<(u64, CostVolShape)> = None;
-    for (tc, tr) in [(4u32, 4u32), (8, 4), (4, 8), (8, 8), (16, 8), (8, 16), (16, 16)] {
+    let tiles = [(4u32, 4u32), (8, 4), (4, 8), (8, 8), (16, 8), (8, 16), (16, 16)];
+    let tiles = force.map_or(tiles.to_vec(), |(tc, tr, _)| vec![(tc, tr)]);
+    for (tc, tr) in tiles {
         let ct = cv_tiles(&xs, tc as usize, block);
         let rt = cv_tiles(&ys, tr as usize, block);
         let rwm = ct.iter().map(|t| t.1).max()?;
         let rhm = u64::from(rt.iter().map(|t| t.1).max()?);
         let ntiles = (ct.len() * rt.len()) as u64;
-        for g in 1..=nd as u32 {
+        let gs = force.map_or(1..=nd as u32, |(_, _, g)| g..=g);
+        for g in gs {
             if 4 * u64::from(g) * u64::from(rwm) * u64::from(tr) > u64::from(budget) {
                 break;
             }
@@ -653,6 +661,8 @@ pub struct GpuFlow {
     /// The dense fast path (cost volume): `None` = where it applies and pays, `Some(false)` =
     /// never, `Some(true)` = wherever it applies. From `FLOWNAV_GPU_COST_VOLUME` (`0`/`1`).
     cost_volume: Option<bool>,
+    /// Forced (TC, TR, G) of the cost volume (tests).
+    cost_volume_tile: Option<(u32, u32, u32)>,
 }
 
 impl std::fmt::Debug for GpuFlow {
@@ -683,6 +693,7 @@ impl GpuFlow {
                 Ok("1") => Some(true),
                 _ => None,
             },
+            cost_volume_tile: None,
         })
     }
 
@@ -705,6 +716,25 @@ impl GpuFlow {
     #[doc(hidden)]
     pub fn uses_cost_volume(&self) -> bool {
         self.sized.as_ref().is_some_and(|s| s.cost_volume.is_some())
+    }
+
+    /// Forces the cost volume's tile (TC × TR blocks) and its dx group G instead of the
+    /// planner's choice (`None`: the planner's), to exercise other loop shapes in tests; a
+    /// choice that does not fit the device's workgroup memory falls back to the per-block kernel.
+    #[doc(hidden)]
+    pub fn set_cost_volume_tile(&mut self, tile: Option<(u32, u32, u32)>) {
+        if self.cost_volume_tile != tile {
+            self.cost_volume_tile = tile;
+            let _ = self.flush();
+            self.sized = None;
+            self.last_b_slot = None;
+        }
+    }
+
+    /// The cost volume's (TC, TR, G) at the current frame size, when it runs.
+    #[doc(hidden)]
+    pub fn cost_volume_tile(&self) -> Option<(u32, u32, u32)> {
+        self.sized.as_ref().and_then(|s| s.cost_volume.as_ref()).map(|(p, _)| (p.shape.tc, p.shape.tr, p.shape.g))
     }
 
     /// Absolute differences the cost volume computes per frame pair at the current frame size
@@ -886,7 +916,8 @@ impl GpuFlow {
             return None;
         }
         let limits = self.ctx.device.limits();
-        let plan = plan_cost_volume(origins, grid, p.block, p.radius, wg, limits.max_compute_workgroup_storage_size)?;
+        let budget = limits.max_compute_workgroup_storage_size;
+        let plan = plan_cost_volume(origins, grid, p.block, p.radius, wg, budget, self.cost_volume_tile)?;
         let (rows, cols) = grid;
         let step = |pos: Vec<usize>| pos.windows(2).map(|w| w[1] - w[0]).max();
         let overlap = |s: Option<usize>| s.is_some_and(|s| p.block >= 2 * s.max(1));
@@ -1280,8 +1311,9 @@ mod tests {
             let a: Vec<u8> = (0..w * h).map(|_| rnd()).collect();
             let b: Vec<u8> = (0..w * h).map(|_| rnd()).collect();
             // A small budget forces small groups; the planner must still cover everything.
-            for budget in [16384, 2048] {
-                let plan = plan_cost_volume(&origins, (rows, cols), block, radius, 256, budget).expect("plan");
+            let forced = [Some((1, 1, 1)), Some((3, 5, 2)), Some((16, 2, 4))];
+            for (budget, force) in [(16384, None), (2048, None)].into_iter().chain(forced.map(|f| (16384, f))) {
+                let plan = plan_cost_volume(&origins, (rows, cols), block, radius, 256, budget, force).expect("plan");
                 let costs = simulate(&plan, &origins, cols, &a, &b, (w, h));
                 for (bi, &(ox, oy)) in origins.iter().enumerate() {
                     let win = super::super::cpu::Window::new(ox, oy, block, w, h, (0, 0), radius as i32);
@@ -1311,7 +1343,7 @@ mod tests {
     fn cost_volume_plan_at_720p_dense() {
         let p = FlowParams { stride: Some(8), ..FlowParams::default() };
         let origins = super::super::block_origins(&p, 1280, 720);
-        let plan = plan_cost_volume(&origins, (88, 160), 32, 16, 256, 49152).expect("plan");
+        let plan = plan_cost_volume(&origins, (88, 160), 32, 16, 256, 49152, None).expect("plan");
         eprintln!(
             "720p dense plan (48 KiB workgroup memory): {:?}, {} x {} tiles, {} absolute differences per pair",
             plan.shape, plan.ntc, plan.ntr, plan.abs_diffs
