@@ -15,8 +15,10 @@
 # (Both JSON streams also name target/release/flownav; `exe` keeps only the flow_gpu binary.)
 # To try the script here on lavapipe: WGPU_BACKEND=vulkan bench/gpu_device_check.sh (the bench
 # skips gpu/dense on a software adapter).
-# (.devbin/ is untracked and not ignored, so the device tool copies it with the working tree;
-# do not commit it.) Then on the device machine, from the repository root:
+# .devbin/ is ignored (this repository's .git/info/exclude lists /.devbin/), so it does not
+# travel with the working tree by itself: name it in the device tool's `carry` ([".devbin"],
+# ~17 MB stripped, under the 64 MiB limit). Do not commit it. data/graf_shift_512 (tracked) is
+# the benchmark's input. Then on the device machine, from the repository root:
 #
 #   bench/gpu_device_check.sh [BINDIR]      # BINDIR defaults to .devbin; results in $OUT if set
 #
