@@ -58,15 +58,17 @@ grep -E '^GPU flow tests on|FAILED|panicked' "$OUTDIR/tests.txt" | head -40 | te
 [ "$rc" = 0 ] || status=1
 
 # 2. benchmarks, new path (default) then old path
-FILTER='flow_gpu_720p/gpu(_stream_wait)?/(default|dense)$'
+# (the new path also times forced tile shapes of the cost volume: FLOWNAV_BENCH_CV_TILES)
+FILTER='flow_gpu_720p/gpu(_stream_wait)?/(default|dense)(_tile_.*)?$'
+TILES=${FLOWNAV_BENCH_CV_TILES-'8,8,11;8,8,17;16,8,10;8,16,8;16,16,5;4,4,33;8,4,33'}
 for mode in new old; do
-    if [ "$mode" = old ]; then sw="FLOWNAV_GPU_COST_VOLUME=0"; else sw="-u FLOWNAV_GPU_COST_VOLUME"; fi
+    if [ "$mode" = old ]; then sw="FLOWNAV_GPU_COST_VOLUME=0"; else sw="-u FLOWNAV_GPU_COST_VOLUME FLOWNAV_BENCH_CV_TILES=$TILES"; fi
     # shellcheck disable=SC2086
-    env $sw timeout 60 "$BIN/flow_gpu_bench" --bench --warm-up-time 1 --measurement-time 3 \
+    env $sw timeout 120 "$BIN/flow_gpu_bench" --bench --warm-up-time 1 --measurement-time 3 \
         --noplot "$FILTER" >"$OUTDIR/bench_$mode.txt" 2>&1
     rc=$?
     log "bench ($mode path: env $sw): exit $rc"
-    grep -E '^GPU:|cost volume|identical|differ|panicked|^flow_gpu_720p/|time:' "$OUTDIR/bench_$mode.txt" \
+    grep -E '^GPU:|cost volume|identical|differ|panicked|tile|^flow_gpu_720p/|time:' "$OUTDIR/bench_$mode.txt" \
         | tee -a "$OUTDIR/summary.txt"
     [ "$rc" = 0 ] || status=1
 done

@@ -119,6 +119,34 @@ fn bench(c: &mut Criterion) {
             })
         });
         engine.flush().unwrap();
+        // FLOWNAV_BENCH_CV_TILES="TC,TR,G;..." also times the dense cost volume with those
+        // forced tile shapes (to tune the planner on a real GPU), each checked against the CPU.
+        let tiles = std::env::var("FLOWNAV_BENCH_CV_TILES").unwrap_or_default();
+        for shape in tiles.split(';').filter(|_| name == "dense").filter_map(|t| {
+            let v: Vec<u32> = t.split(',').filter_map(|n| n.trim().parse().ok()).collect();
+            (v.len() == 3).then(|| (v[0], v[1], v[2]))
+        }) {
+            engine.set_cost_volume(Some(true));
+            engine.set_cost_volume_tile(Some(shape));
+            let got = engine.compute(&a, &b).unwrap().clone();
+            if engine.cost_volume_tile() != Some(shape) {
+                eprintln!("gpu/dense tile {shape:?}: not usable here (plan {:?})", engine.cost_volume_tile());
+                continue;
+            }
+            let same = got.vectors.iter().zip(&expected.vectors).all(|(g, c)| {
+                (g.x, g.y, g.validity, g.cost.to_bits(), g.u.to_bits(), g.v.to_bits())
+                    == (c.x, c.y, c.validity, c.cost.to_bits(), c.u.to_bits(), c.v.to_bits())
+            });
+            assert!(same, "gpu/dense tile {shape:?}: field differs from the CPU engine's");
+            eprintln!(
+                "gpu/dense tile {shape:?}: identical to the CPU engine's, {:?} absolute differences",
+                engine.cost_volume_abs_diffs()
+            );
+            let (tc, tr, gg) = shape;
+            g.bench_function(format!("gpu/dense_tile_{tc}x{tr}_g{gg}"), |bch| {
+                bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
+            });
+        }
     }
     g.finish();
 }
