@@ -491,11 +491,54 @@ impl ObstacleMemory {
                 *side = Some((d, [along, across]));
             }
         }
+        // a robot already closer to a lane's wall than its footprint plus `lane_margin_m` has
+        // that wall as a threat on its side (the band leaves the walls to the lane, and the lane
+        // alone only keeps the steering from heading out: nothing turned a robot that drifted
+        // outside its margin back in before it scraped), at the wall's nearest point not behind
+        // its origin
+        for (side, [along, across]) in self.lane_walls_near(horizon) {
+            let d = (along.hypot(across) - p.robot_radius_m).max(0.0);
+            if best[side].is_none_or(|(bd, _)| d < bd) {
+                best[side] = Some((d, [along, across]));
+            }
+        }
         best.map(|b| match b {
             Some((d, [f, l])) => {
                 Obstacle { present: true, distance_m: Some(d), bearing_rad: Some(l.atan2(f)), cell: None }
             }
             None => Obstacle::default(),
+        })
+    }
+
+    /// The walls of the lane ([`walled_lane`](Self::walled_lane)) nearer to the robot's origin
+    /// than `robot_radius_m + lane_margin_m`, each as its nearest point not behind the origin
+    /// and at most `horizon` ahead, robot frame, with the side of the heading it is on (0 left,
+    /// 1 right). A robot outside its lane has the wall it crossed 1 cm away.
+    fn lane_walls_near(&self, horizon: f64) -> impl Iterator<Item = (usize, [f64; 2])> + '_ {
+        let near = self.params.robot_radius_m + self.params.lane_margin_m;
+        let lane = self.walled_lane();
+        [0, 1].into_iter().filter_map(move |side| {
+            let l = lane?;
+            let (s, c) = l.angle_rad.sin_cos();
+            // distance to the wall and the unit normal toward it (the lane's left is (−s, c))
+            let (gap, n) = match side {
+                0 => (l.half_width_m - l.left_m, [-s, c]),
+                _ => (l.half_width_m + l.left_m, [s, -c]),
+            };
+            if gap >= near {
+                return None;
+            }
+            let gap = gap.max(0.01);
+            let mut at = [gap * n[0], gap * n[1]];
+            if at[0] < 0.0 {
+                // the foot of the perpendicular is behind: the wall's point abeam of the origin
+                if c.abs() < 1e-6 {
+                    return None;
+                }
+                let t = -at[0] / c;
+                at = [0.0, at[1] + t * s];
+            }
+            (at[0] <= horizon).then_some((usize::from(at[1] < 0.0), at))
         })
     }
 
@@ -968,6 +1011,45 @@ mod tests {
         touched.mark_contact(0.5);
         assert!(touched.banded_cells().all(|(_, banded)| !banded));
         assert!(touched.free_distance(0.0, 1.5) < 0.35, "{}", touched.free_distance(0.0, 1.5));
+    }
+
+    #[test]
+    fn a_lane_wall_inside_the_robots_margin_is_a_threat_on_its_side() {
+        use std::f64::consts::FRAC_PI_2;
+        // nothing seen: only the lane's walls can be threats (the band leaves them to it)
+        let band = MemoryParams { wall_band_m: 0.25, ..memory().params };
+        let near = band.robot_radius_m + band.lane_margin_m;
+        let mut m = ObstacleMemory::new(band, 26.7f64.to_radians(), 0.4);
+        let lane = |left_m: f64, angle_rad: f64| Some(Lane { left_m, angle_rad, half_width_m: 0.6 });
+        // on the centre line: both walls 0.6 m away, beyond the margin
+        m.set_lane(lane(0.0, 0.0));
+        assert_eq!(m.threat_sides(f64::INFINITY), [Obstacle::default(), Obstacle::default()]);
+        // 0.4 m left of the line, parallel to it: the left wall is 0.2 m away, abeam
+        m.set_lane(lane(0.4, 0.0));
+        let [left, right] = m.threat_sides(f64::INFINITY);
+        assert!(left.present && !right.present, "{left:?} {right:?}");
+        assert!((left.distance_m.unwrap() - (0.2 - band.robot_radius_m)).abs() < 1e-9, "{left:?}");
+        assert!((left.bearing_rad.unwrap() - FRAC_PI_2).abs() < 1e-9, "{left:?}");
+        // heading 0.3 rad into the right wall, 0.15 m from it: the wall's nearest point is ahead
+        // on the right, at the perpendicular distance
+        m.set_lane(lane(-0.45, 0.3));
+        let [left, right] = m.threat_sides(f64::INFINITY);
+        assert!(!left.present && right.present, "{left:?} {right:?}");
+        assert!((right.distance_m.unwrap() - 0.0).abs() < 1e-9, "inside the footprint: {right:?}");
+        let bearing = right.bearing_rad.unwrap();
+        assert!((-FRAC_PI_2..0.0).contains(&bearing) && (bearing + FRAC_PI_2 - 0.3).abs() < 1e-9, "{right:?}");
+        // heading away from the left wall, 0.25 m from it: its nearest point not behind is abeam
+        m.set_lane(lane(0.35, 0.4));
+        let [left, _] = m.threat_sides(f64::INFINITY);
+        let gap = 0.25 / 0.4f64.cos();
+        assert!((left.distance_m.unwrap() - (gap - band.robot_radius_m)).abs() < 1e-9, "{left:?}");
+        // just outside the margin: none
+        m.set_lane(lane(0.6 - near - 0.01, 0.0));
+        assert!(!m.threat_sides(f64::INFINITY)[0].present);
+        // the band off: the walls are the cells', not the lane's
+        let mut off = ObstacleMemory { params: MemoryParams { wall_band_m: 0.0, ..band }, ..m.clone() };
+        off.set_lane(lane(0.4, 0.0));
+        assert!(!off.threat_sides(f64::INFINITY)[0].present);
     }
 
     #[test]
