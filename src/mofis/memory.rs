@@ -98,6 +98,11 @@ pub struct MemoryParams {
     /// (seed 16). The price: in a corridor, something that stands out of a wall by less than
     /// this is not seen (set 0 where such things are; docs/navigation.md). 0: off.
     pub wall_band_m: f64,
+    /// With the wall band on, a lane's wall closer than this to the robot's footprint (by dead
+    /// reckoning) is a threat on its side ([`ObstacleMemory::threat_sides`]), so MOFIS turns
+    /// the robot back in, m; it also has to cover the dead-reckoned position's lateral drift.
+    /// 0: off.
+    pub wall_threat_m: f64,
     /// Points are taken in only when the robot travelled at least this far forward over the
     /// frame interval, m: with less, the flow of anything but the nearest surfaces is below the
     /// matching noise, and a noise vector reads as a surface close by.
@@ -148,6 +153,7 @@ impl Default for MemoryParams {
             behind_m: 0.0,
             lane_margin_m: 0.1,
             wall_band_m: 0.25,
+            wall_threat_m: 0.1,
             min_travel_m: 0.006,
             min_range_m: 0.22,
             min_radial_px: 1.2,
@@ -186,6 +192,7 @@ impl MemoryParams {
                 nonneg(self.wall_band_m) && self.wall_band_m <= 0.5,
                 "must be a distance in [0, 0.5] m (0: off)",
             ),
+            ("wall_threat_m", nonneg(self.wall_threat_m), "must be a distance ≥ 0 in m (0: off)"),
             ("min_travel_m", nonneg(self.min_travel_m), "must be a distance ≥ 0 in m"),
             ("min_radial_px", nonneg(self.min_radial_px), "must be ≥ 0 pixels"),
             ("max_tangential", pos(self.max_tangential), "must be a positive fraction"),
@@ -491,7 +498,7 @@ impl ObstacleMemory {
                 *side = Some((d, [along, across]));
             }
         }
-        // a robot already closer to a lane's wall than its footprint plus `lane_margin_m` has
+        // a robot already closer to a lane's wall than its footprint plus `wall_threat_m` has
         // that wall as a threat on its side (the band leaves the walls to the lane, and the lane
         // alone only keeps the steering from heading out: nothing turned a robot that drifted
         // outside its margin back in before it scraped), at the wall's nearest point not behind
@@ -511,12 +518,12 @@ impl ObstacleMemory {
     }
 
     /// The walls of the lane ([`walled_lane`](Self::walled_lane)) nearer to the robot's origin
-    /// than `robot_radius_m + lane_margin_m`, each as its nearest point not behind the origin
+    /// than `robot_radius_m + wall_threat_m`, each as its nearest point not behind the origin
     /// and at most `horizon` ahead, robot frame, with the side of the heading it is on (0 left,
     /// 1 right). A robot outside its lane has the wall it crossed 1 cm away.
     fn lane_walls_near(&self, horizon: f64) -> impl Iterator<Item = (usize, [f64; 2])> + '_ {
-        let near = self.params.robot_radius_m + self.params.lane_margin_m;
-        let lane = self.walled_lane();
+        let near = self.params.robot_radius_m + self.params.wall_threat_m;
+        let lane = self.walled_lane().filter(|_| self.params.wall_threat_m > 0.0);
         [0, 1].into_iter().filter_map(move |side| {
             let l = lane?;
             let (s, c) = l.angle_rad.sin_cos();
@@ -1018,7 +1025,7 @@ mod tests {
         use std::f64::consts::FRAC_PI_2;
         // nothing seen: only the lane's walls can be threats (the band leaves them to it)
         let band = MemoryParams { wall_band_m: 0.25, ..memory().params };
-        let near = band.robot_radius_m + band.lane_margin_m;
+        let near = band.robot_radius_m + band.wall_threat_m;
         let mut m = ObstacleMemory::new(band, 26.7f64.to_radians(), 0.4);
         let lane = |left_m: f64, angle_rad: f64| Some(Lane { left_m, angle_rad, half_width_m: 0.6 });
         // on the centre line: both walls 0.6 m away, beyond the margin
@@ -1050,6 +1057,16 @@ mod tests {
         let mut off = ObstacleMemory { params: MemoryParams { wall_band_m: 0.0, ..band }, ..m.clone() };
         off.set_lane(lane(0.4, 0.0));
         assert!(!off.threat_sides(f64::INFINITY)[0].present);
+        // the threat off, the band on
+        let mut off = ObstacleMemory { params: MemoryParams { wall_threat_m: 0.0, ..band }, ..m.clone() };
+        off.set_lane(lane(0.4, 0.0));
+        assert!(!off.threat_sides(f64::INFINITY)[0].present);
+        // a wider margin (to cover dead-reckoning drift) reaches farther: 0.35 m from the wall
+        let mut wide = ObstacleMemory { params: MemoryParams { wall_threat_m: 0.2, ..band }, ..m.clone() };
+        wide.set_lane(lane(0.25, 0.0));
+        assert!(wide.threat_sides(f64::INFINITY)[0].present);
+        m.set_lane(lane(0.25, 0.0));
+        assert!(!m.threat_sides(f64::INFINITY)[0].present);
     }
 
     #[test]
