@@ -37,6 +37,11 @@ const MATCH_WG: u32 = 256;
 const PREP_WG: u32 = 64;
 /// Most candidates one invocation accumulates per band (registers).
 const MAX_PER: u32 = 8;
+/// Most timed passes per pair (preprocessing, cost volume, one per matching level).
+const MAX_TIMED: u32 = 16;
+/// Labels of the matching passes per level (`match L0` is the finest).
+const MATCH_LABELS: [&str; 8] =
+    ["match L0", "match L1", "match L2", "match L3", "match L4", "match L5", "match L6", "match L7"];
 
 /// An adapter, its device and queue, shared by every GPU engine made from it.
 pub struct GpuContext {
@@ -100,9 +105,12 @@ impl GpuContext {
     /// Opens a device on `adapter` with the adapter's own limits.
     pub fn new(adapter: &wgpu::Adapter) -> Result<Self, FlowError> {
         let info = adapter.get_info();
+        // Timestamp queries (per-pass GPU timing, `GpuFlow::set_pass_timing`) where the adapter
+        // has them; nothing else depends on them.
         let desc = wgpu::DeviceDescriptor {
             label: Some("flownav flow"),
             required_limits: adapter.limits(),
+            required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
             ..Default::default()
         };
         let (device, queue) = pollster::block_on(adapter.request_device(&desc)).map_err(|e| {
@@ -640,6 +648,20 @@ struct InFlight {
     staging: usize,
     submission: wgpu::SubmissionIndex,
     mapped: mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+    /// Labels of the passes whose timestamps this pair wrote (`GpuFlow::set_pass_timing`).
+    timed: Option<Vec<&'static str>>,
+}
+
+/// Timestamp queries of one pair: a begin and an end timestamp per compute pass, resolved and
+/// copied into `readback` (read when the pair is received).
+struct PassTiming {
+    queries: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    /// Whether a pair in flight owns `readback`.
+    busy: bool,
+    /// The last pair's (pass, milliseconds), and the whole span first begin → last end.
+    last: Option<Vec<(&'static str, f64)>>,
 }
 
 /// The GPU engine. Construct once (per parameter set), then call [`FlowEngine::compute`] or
@@ -663,6 +685,9 @@ pub struct GpuFlow {
     cost_volume: Option<bool>,
     /// Forced (TC, TR, G) of the cost volume (tests).
     cost_volume_tile: Option<(u32, u32, u32)>,
+    /// Per-pass GPU timing, when on (`set_pass_timing`, `FLOWNAV_GPU_TIMESTAMPS=1`) and the
+    /// device has timestamp queries.
+    timing: Option<PassTiming>,
 }
 
 impl std::fmt::Debug for GpuFlow {
@@ -694,7 +719,59 @@ impl GpuFlow {
                 _ => None,
             },
             cost_volume_tile: None,
-        })
+            timing: None,
+        }
+        .with_pass_timing(std::env::var("FLOWNAV_GPU_TIMESTAMPS").as_deref() == Ok("1")))
+    }
+
+    fn with_pass_timing(mut self, on: bool) -> Self {
+        self.set_pass_timing(on);
+        self
+    }
+
+    /// Turns per-pass GPU timing on or off (also `FLOWNAV_GPU_TIMESTAMPS=1`): each pair then
+    /// writes a timestamp before and after each of its compute passes (preprocessing, cost
+    /// volume, matching per level) and [`GpuFlow::last_pass_times`] returns them. Returns whether
+    /// timing is on: false where the device has no timestamp queries. For benchmarks.
+    #[doc(hidden)]
+    pub fn set_pass_timing(&mut self, on: bool) -> bool {
+        let dev = &self.ctx.device;
+        if !on || !dev.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
+            let _ = self.flush();
+            self.timing = None;
+            return false;
+        }
+        if self.timing.is_none() {
+            let bytes = 8 * u64::from(2 * MAX_TIMED);
+            let buf = |label, usage| {
+                dev.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size: bytes,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            self.timing = Some(PassTiming {
+                queries: dev.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("flow pass times"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: 2 * MAX_TIMED,
+                }),
+                resolve: buf("flow pass times", wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC),
+                readback: buf("flow pass times readback", wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST),
+                busy: false,
+                last: None,
+            });
+        }
+        true
+    }
+
+    /// The GPU time of each compute pass of the last timed pair, in milliseconds (converted
+    /// with the queue's timestamp period), then `("total", first begin → last end)`; `None`
+    /// unless [`GpuFlow::set_pass_timing`] is on and a pair has been received since.
+    #[doc(hidden)]
+    pub fn last_pass_times(&self) -> Option<Vec<(&'static str, f64)>> {
+        self.timing.as_ref().and_then(|t| t.last.clone())
     }
 
     /// Forces the dense fast path (the cost volume) off (`Some(false)`), on wherever it
@@ -813,10 +890,27 @@ impl GpuFlow {
         self.last_b_slot = Some(slot_b);
 
         let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("flow") });
-        {
-            let mut pass =
-                enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("flow"), timestamp_writes: None });
-            let nlev = sized.dims.len();
+        // One compute pass per stage (preprocessing, cost volume, matching per level), each
+        // with a begin and an end timestamp when pass timing is on and free.
+        let timing = self.timing.as_mut().filter(|t| !t.busy);
+        let queries = timing.as_ref().map(|t| &t.queries);
+        let mut labels: Vec<&'static str> = Vec::new();
+        let mut begin = |enc: &mut wgpu::CommandEncoder, label: &'static str| {
+            let writes = queries.filter(|_| labels.len() < MAX_TIMED as usize).map(|q| {
+                let i = 2 * labels.len() as u32;
+                labels.push(label);
+                wgpu::ComputePassTimestampWrites {
+                    query_set: q,
+                    beginning_of_pass_write_index: Some(i),
+                    end_of_pass_write_index: Some(i + 1),
+                }
+            });
+            enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: writes })
+                .forget_lifetime()
+        };
+        let nlev = sized.dims.len();
+        if nlev > 1 || sized.slots[slot_b][0].hp.is_some() {
+            let mut pass = begin(&mut enc, "prep");
             for (s, upload) in [(slot_a, upload_a), (slot_b, true)] {
                 if !upload {
                     continue;
@@ -840,26 +934,39 @@ impl GpuFlow {
                     }
                 }
             }
-            if let Some((plan, bgs)) = &sized.cost_volume {
-                pass.set_pipeline(&self.pipes.costvols[&plan.shape]);
-                pass.set_bind_group(0, &bgs[slot_a], &[]);
-                pass.dispatch_workgroups(plan.ntc, plan.ntr, 2 * plan.shape.radius + 1);
-            }
-            for l in (0..nlev).rev() {
-                pass.set_pipeline(&self.pipes.matchers[&sized.shapes[l]]);
-                pass.set_bind_group(0, &sized.match_bgs[slot_a][l], &[]);
-                pass.dispatch_workgroups(sized.cols as u32, sized.rows as u32, 1);
-            }
+        }
+        if let Some((plan, bgs)) = &sized.cost_volume {
+            let mut pass = begin(&mut enc, "costvol");
+            pass.set_pipeline(&self.pipes.costvols[&plan.shape]);
+            pass.set_bind_group(0, &bgs[slot_a], &[]);
+            pass.dispatch_workgroups(plan.ntc, plan.ntr, 2 * plan.shape.radius + 1);
+        }
+        for l in (0..nlev).rev() {
+            let label = if sized.shapes[l].pre { "reduce" } else { MATCH_LABELS[l.min(MATCH_LABELS.len() - 1)] };
+            let mut pass = begin(&mut enc, label);
+            pass.set_pipeline(&self.pipes.matchers[&sized.shapes[l]]);
+            pass.set_bind_group(0, &sized.match_bgs[slot_a][l], &[]);
+            pass.dispatch_workgroups(sized.cols as u32, sized.rows as u32, 1);
         }
         let staging = (self.submitted % 2) as usize;
         enc.copy_buffer_to_buffer(&sized.result, 0, &sized.staging[staging], 0, sized.record_bytes);
+        let timed = match timing {
+            Some(t) if !labels.is_empty() => {
+                let n = 2 * labels.len() as u32;
+                enc.resolve_query_set(&t.queries, 0..n, &t.resolve, 0);
+                enc.copy_buffer_to_buffer(&t.resolve, 0, &t.readback, 0, 8 * u64::from(n));
+                t.busy = true;
+                Some(labels)
+            }
+            _ => None,
+        };
         let submission = ctx.queue.submit([enc.finish()]);
         let (tx, rx) = mpsc::channel();
         sized.staging[staging].map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
         self.submitted += 1;
-        self.pending.push_back(InFlight { staging, submission, mapped: rx });
+        self.pending.push_back(InFlight { staging, submission, mapped: rx, timed });
         Ok(())
     }
 
@@ -873,19 +980,7 @@ impl GpuFlow {
         if let Some(e) = ctx.take_error() {
             return Err(gpu_err(format!("the GPU flow computation failed: {e}")));
         }
-        // the read-back's callback fires in a poll once its submission is done; the wait above
-        // can return before that poll ran it (seen on lavapipe under load), so wait for
-        // everything once more before calling it missing
-        let mapped = match job.mapped.try_recv() {
-            Err(mpsc::TryRecvError::Empty) => {
-                ctx.device
-                    .poll(wgpu::PollType::Wait { submission_index: None, timeout: None })
-                    .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
-                job.mapped.try_recv()
-            }
-            r => r,
-        };
-        match mapped {
+        match wait_mapped(ctx, &job.mapped)? {
             Ok(Ok(())) => {}
             Ok(Err(e)) => return Err(gpu_err(format!("reading the flow results back: {e}"))),
             Err(_) => return Err(gpu_err("the GPU did not deliver the flow results")),
@@ -898,6 +993,10 @@ impl GpuFlow {
             fill_field(&self.params, sized, words, &mut self.field);
         }
         buf.unmap();
+        if let (Some(labels), Some(t)) = (&job.timed, self.timing.as_mut()) {
+            t.last = read_pass_times(ctx, &t.readback, labels)?;
+            t.busy = false;
+        }
         Ok(())
     }
 
@@ -1148,6 +1247,59 @@ impl GpuFlow {
             record_bytes,
         })
     }
+}
+
+/// The result of a `map_async` whose submission has been waited for. Its callback fires in
+/// some poll after the submission is done, possibly one running on another thread that shares
+/// the device (seen on lavapipe under load), so wait for everything and give that poll up to
+/// 10 s to deliver it before calling it missing.
+fn wait_mapped<T>(ctx: &GpuContext, rx: &mpsc::Receiver<T>) -> Result<Result<T, ()>, FlowError> {
+    for _ in 0..1000 {
+        if let Ok(r) = rx.try_recv() {
+            return Ok(Ok(r));
+        }
+        ctx.device
+            .poll(wgpu::PollType::Wait { submission_index: None, timeout: None })
+            .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
+        if let Ok(r) = rx.recv_timeout(std::time::Duration::from_millis(10)) {
+            return Ok(Ok(r));
+        }
+    }
+    Ok(Err(()))
+}
+
+/// Maps the resolved timestamps of a received pair (begin and end per pass, in ticks) and
+/// converts them into milliseconds per pass, then the total span; `None` if any is missing.
+fn read_pass_times(
+    ctx: &GpuContext,
+    readback: &wgpu::Buffer,
+    labels: &[&'static str],
+) -> Result<Option<Vec<(&'static str, f64)>>, FlowError> {
+    let (tx, rx) = mpsc::channel();
+    readback.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    match wait_mapped(ctx, &rx)? {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => return Err(gpu_err(format!("reading the pass times back: {e}"))),
+        Err(_) => return Err(gpu_err("the GPU did not deliver the pass times")),
+    }
+    let ticks: Vec<u64> = {
+        let view = readback.get_mapped_range(..).map_err(|e| gpu_err(format!("mapping the pass times: {e}")))?;
+        bytemuck::cast_slice::<u8, u64>(&view)[..2 * labels.len()].to_vec()
+    };
+    readback.unmap();
+    let ms_per_tick = f64::from(ctx.queue.get_timestamp_period()) * 1e-6;
+    let span = |a: u64, b: u64| b.checked_sub(a).map(|t| t as f64 * ms_per_tick);
+    let mut out = Vec::with_capacity(labels.len() + 1);
+    for (i, &label) in labels.iter().enumerate() {
+        let Some(ms) = span(ticks[2 * i], ticks[2 * i + 1]) else { return Ok(None) };
+        out.push((label, ms));
+    }
+    let (first, last) = (ticks[0], ticks[2 * labels.len() - 1]);
+    let Some(total) = span(first, last) else { return Ok(None) };
+    out.push(("total", total));
+    Ok(Some(out))
 }
 
 /// Writes frame `img` into a packed buffer of `ws` words per row (rows padded with zeros).
