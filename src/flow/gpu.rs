@@ -210,6 +210,9 @@ struct MatchShape {
     level0: bool,
     /// Costs precomputed by the cost-volume kernel (`costvol.wgsl`): only the reductions run.
     pre: bool,
+    /// (PRE) The block of A and the patch of B around the best candidate cached in workgroup
+    /// memory for the texture energy and the SSDs.
+    pcache: bool,
 }
 
 impl MatchShape {
@@ -238,13 +241,20 @@ impl MatchShape {
             }
         }
         let (_, band, chunk) = best?;
-        Some(Self { wg, block, win, band, chunk, costs_in_workgroup, level0, pre: false })
+        Some(Self { wg, block, win, band, chunk, costs_in_workgroup, level0, pre: false, pcache: false })
     }
 
-    /// The reductions-only shape that reads the cost volume's global cost grids (level 0).
-    fn precomputed(wg: u32, block: u32, radius: u32) -> Self {
+    /// The reductions-only shape that reads the cost volume's global cost grids (level 0): the
+    /// costs are copied into workgroup memory (read once from global memory) when they fit in
+    /// half of `budget`, and the pixels of the texture energy and SSDs are cached when they fit
+    /// in the rest.
+    fn precomputed(wg: u32, block: u32, radius: u32, budget: u32) -> Self {
         let win = 2 * radius + 1;
-        Self { wg, block, win, band: 1, chunk: 1, costs_in_workgroup: false, level0: true, pre: true }
+        let costs_bytes = 4 * win * win;
+        let costs_in_workgroup = costs_bytes <= budget / 2;
+        let used = 64 + if costs_in_workgroup { costs_bytes } else { 4 };
+        let pcache = used + 4 * (block * block + (block + 2) * (block + 2)) <= budget;
+        Self { wg, block, win, band: 1, chunk: 1, costs_in_workgroup, level0: true, pre: true, pcache }
     }
 
     fn row_words(win: u32, block: u32) -> u32 {
@@ -260,7 +270,8 @@ impl MatchShape {
              const TAIL: bool = {tail};\nconst NXM: u32 = {win}u;\nconst NYM: u32 = {win}u;\nconst TY: u32 = {ty}u;\n\
              const CH: u32 = {ch}u;\nconst NCH: u32 = {nch}u;\nconst RW: u32 = {rw}u;\nconst PER: u32 = {per}u;\n\
              const SAN: u32 = {san}u;\nconst SBN: u32 = {sbn}u;\nconst WCN: u32 = {wcn}u;\n\
-             const COSTS_WG: bool = {cwg};\nconst IS_L0: bool = {l0};\nconst PRE: bool = {pre};\n{body}",
+             const COSTS_WG: bool = {cwg};\nconst IS_L0: bool = {l0};\nconst PRE: bool = {pre};\n\
+             const PCACHE: bool = {pcache};\nconst PW: u32 = {pw}u;\n{body}",
             wg = self.wg,
             bl = self.block,
             awf = self.block / 4,
@@ -269,12 +280,14 @@ impl MatchShape {
             ty = self.band,
             ch = self.chunk,
             nch = self.block.div_ceil(self.chunk),
-            san = self.chunk * aw,
-            sbn = (self.chunk + self.band - 1) * rw,
+            san = if self.pcache { self.block * self.block } else { self.chunk * aw },
+            sbn = if self.pcache { (self.block + 2) * (self.block + 2) } else { (self.chunk + self.band - 1) * rw },
             wcn = if self.costs_in_workgroup { self.win * self.win } else { 1 },
             cwg = self.costs_in_workgroup,
             l0 = self.level0,
             pre = self.pre,
+            pcache = self.pcache,
+            pw = self.block + 2,
             body = MATCH_WGSL,
         )
     }
@@ -1063,7 +1076,7 @@ impl GpuFlow {
         let mut shapes = Vec::with_capacity(nlev);
         if let Some(plan) = &cv_plan {
             self.pipes.costvol(device, plan.shape)?;
-            let shape = MatchShape::precomputed(wg, p.block as u32, p.radius as u32);
+            let shape = MatchShape::precomputed(wg, p.block as u32, p.radius as u32, budget);
             self.pipes.matcher(device, shape)?;
             shapes.push(shape);
         }
@@ -1080,7 +1093,7 @@ impl GpuFlow {
         }
         let gcost_words = shapes
             .iter()
-            .filter(|s| !s.costs_in_workgroup)
+            .filter(|s| !s.costs_in_workgroup || s.pre)
             .map(|s| (s.win * s.win) as u64 * n as u64)
             .max()
             .unwrap_or(1);
