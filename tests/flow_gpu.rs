@@ -612,4 +612,15 @@ fn cost_volume_forced_tile_shapes_match() {
         }
         assert_identical(&f, &cpu, &format!("tile {tile:?}"));
     }
+    // 128 px wide: cells of exactly 8 px, so the x origins are congruent mod 4 and the column
+    // sums are kept per quad of 4 columns (160 px above: per column).
+    let (a, b) = pair(128, 96, 162, 4.4, -2.7, false);
+    let cpu = CpuFlow::new(p.clone()).unwrap().compute(&a, &b).unwrap().clone();
+    for tile in [None, Some((1, 1, 1)), Some((16, 8, 3)), Some((3, 5, 4)), Some((4, 4, 33))] {
+        g.set_cost_volume_tile(tile);
+        let f = g.compute(&a, &b).unwrap().clone();
+        eprintln!("128x96, tile {tile:?}: cost volume {:?}", g.cost_volume_tile());
+        assert!(g.uses_cost_volume());
+        assert_identical(&f, &cpu, &format!("128x96, tile {tile:?}"));
+    }
 }

@@ -302,10 +302,14 @@ struct CostVolShape {
     /// Tile of blocks per workgroup: columns, rows.
     tc: u32,
     tr: u32,
-    /// Displacement columns per group (workgroup memory: `g · rwm · tr` words).
+    /// Displacement columns per group (workgroup memory: `g · vw · tr` words).
     g: u32,
     /// Widest tile region, pixels.
     rwm: u32,
+    /// Column sums kept per 4 columns (one word per 4-column quad instead of one per column):
+    /// every block starts a whole number of quads after its tile region's start (all x origins
+    /// congruent mod 4) and the block side is a multiple of 4.
+    quads: bool,
     /// Offset of the row-tile table in the tile table.
     rowbase: u32,
 }
@@ -316,12 +320,21 @@ fn cv_rst(tr: u32) -> u32 {
     4 + 2 * tr
 }
 
+fn cv_vw(rwm: u32, quads: bool) -> u32 {
+    if quads { rwm.div_ceil(4) } else { rwm }
+}
+
 impl CostVolShape {
+    /// Words of V per block row and dx (one per column, or per quad of 4 columns).
+    fn vw(&self) -> u32 {
+        cv_vw(self.rwm, self.quads)
+    }
+
     fn source(&self) -> String {
         format!(
             "const WG: u32 = {wg}u;\nconst BL: u32 = {bl}u;\nconst R: u32 = {r}u;\nconst ND: u32 = {nd}u;\n\
              const TC: u32 = {tc}u;\nconst TR: u32 = {tr}u;\nconst G: u32 = {g}u;\nconst RWM: u32 = {rwm}u;\n\
-             const RWQ: u32 = {rwq}u;\n\
+             const RWQ: u32 = {rwq}u;\nconst QS: bool = {qs};\nconst VW: u32 = {vw}u;\n\
              const VSN: u32 = {vsn}u;\nconst CST: u32 = {cst}u;\nconst RST: u32 = {rst}u;\n\
              const ROWBASE: u32 = {rowbase}u;\n{body}",
             wg = self.wg,
@@ -333,7 +346,9 @@ impl CostVolShape {
             g = self.g,
             rwm = self.rwm,
             rwq = self.rwm.div_ceil(4),
-            vsn = self.g * self.rwm * self.tr,
+            qs = self.quads,
+            vw = self.vw(),
+            vsn = self.g * self.vw() * self.tr,
             cst = CV_CST,
             rst = cv_rst(self.tr),
             rowbase = self.rowbase,
@@ -386,6 +401,7 @@ fn plan_cost_volume(
         return None;
     }
     let (block, nd) = (block as u32, (2 * radius + 1) as u64);
+    let quads = block.is_multiple_of(4) && xs.iter().all(|x| (x - xs[0]).is_multiple_of(4));
     let mut best: Option<(u64, CostVolShape)> = None;
     // The tiles in the order measured fastest on an H200 at 720p dense (docs/gpu.md): larger
     // tiles compute fewer absolute differences. The first whose largest dx group with one
@@ -395,11 +411,11 @@ fn plan_cost_volume(
         for (tc, tr) in [(16u32, 16u32), (16, 8), (8, 8), (8, 4), (4, 4)] {
             let ct = cv_tiles(&xs, tc as usize, block);
             let rwm = ct.iter().map(|t| t.1).max()?;
-            let by_budget = u64::from(budget) / (4 * u64::from(rwm) * u64::from(tr));
+            let by_budget = u64::from(budget) / (4 * u64::from(cv_vw(rwm, quads)) * u64::from(tr));
             let gmax = by_budget.min(u64::from(wg / rwm.div_ceil(4))).min(nd);
             if gmax >= 4.min(nd) && gmax >= 1 {
                 let g = nd.div_ceil(nd.div_ceil(gmax)) as u32;
-                best = Some((0, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, rowbase: 0 }));
+                best = Some((0, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, rowbase: 0 }));
                 break;
             }
         }
@@ -415,7 +431,7 @@ fn plan_cost_volume(
         let ntiles = (ct.len() * rt.len()) as u64;
         let gs = force.map_or(1..=nd as u32, |(_, _, g)| g..=g);
         for g in gs {
-            if 4 * u64::from(g) * u64::from(rwm) * u64::from(tr) > u64::from(budget) {
+            if 4 * u64::from(g) * u64::from(cv_vw(rwm, quads)) * u64::from(tr) > u64::from(budget) {
                 break;
             }
             let groups = nd.div_ceil(u64::from(g));
@@ -424,7 +440,8 @@ fn plan_cost_volume(
             // Serial steps per workgroup (walks, block sums, barriers), times workgroups.
             let cost = ntiles * nd * groups * (rounds1 * rhm * 8 + rounds2 * u64::from(block) + 64);
             if best.is_none_or(|(c, _)| cost < c) {
-                best = Some((cost, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, rowbase: 0 }));
+                best =
+                    Some((cost, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, rowbase: 0 }));
             }
         }
     }
@@ -1531,8 +1548,9 @@ mod tests {
             "720p dense plan (48 KiB workgroup memory): {:?}, {} x {} tiles, {} absolute differences per pair",
             plan.shape, plan.ntc, plan.ntr, plan.abs_diffs
         );
-        // the fastest measured on an H200: 16 × 16 blocks, 5 dx per group
-        assert_eq!((plan.shape.tc, plan.shape.tr, plan.shape.g), (16, 16, 5));
+        // 16 × 16 blocks (the fastest measured on an H200), V per quad of columns, 6 dx per group
+        // (6 · 38 invocations walk in phase 1)
+        assert_eq!((plan.shape.tc, plan.shape.tr, plan.shape.g, plan.shape.quads), (16, 16, 6, true));
         // far below the per-block kernel's 14 080 · 1089 · 1024 = 15.7 G
         assert!(plan.abs_diffs < 2_500_000_000, "{}", plan.abs_diffs);
     }

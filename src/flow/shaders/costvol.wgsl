@@ -11,8 +11,12 @@
 //            at each block row's first row it stores S, at its end row it stores S − stored,
 //            i.e. the column sum over that block row's BL rows: V[r][x][dx] (workgroup memory,
 //            dx fastest; each entry written and re-read only by the invocation that owns it);
+//            with QS (every block starts a multiple of 4 columns after the region's start and
+//            BL is a multiple of 4) V keeps one word per quad of 4 columns, their sum, x = xq/4,
+//            so V takes a quarter of the memory (more workgroups per multiprocessor);
 //   barrier;
-//   phase 2: each invocation sums BL consecutive V columns into one block's cost at (dx, dy)
+//   phase 2: each invocation sums BL consecutive V columns (BL/4 quads with QS) into one
+//            block's cost at (dx, dy)
 //            (consecutive invocations: consecutive dx of one block) and writes it into the
 //            block's cost grid (the layout match.wgsl uses with global
 //            costs: bi·ND² + (dy − lo.y)·nx + (dx − lo.x)) when d is in the block's window;
@@ -23,7 +27,8 @@
 // control flow only (their loops depend on constants and workgroup-uniform values).
 //
 // The Rust side prepends: WG, BL (block side), R (radius), ND (2R+1), TC, TR (tile), G (dx per
-// group), RWM (widest tile region, px), RWQ (= ⌈RWM/4⌉), VSN (= G·RWM·TR), CST/RST (tile-table strides),
+// group), RWM (widest tile region, px), RWQ (= ⌈RWM/4⌉), QS, VW (V words per block row and dx:
+// RWQ with QS, else RWM), VSN (= G·VW·TR), CST/RST (tile-table strides),
 // ROWBASE (offset of the row-tile table).
 //
 // Tile table `tiles` (u32): column tile tc at tc·CST: [X0, region width, valid columns];
@@ -152,14 +157,27 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                         y++;
                     }
                     let r = (ev >> 1u) & 2047u;
-                    for (var i = 0u; i < 4u; i++) {
-                        let xl = xq + i;
-                        let k = (r * RWM + xl) * G + g;
-                        if r < TR && xl < rw && k < VSN {
+                    if QS {
+                        // one word per quad: the sum of the 4 columns
+                        let k = (r * VW + (xq >> 2u)) * G + g;
+                        let sq = s.x + s.y + s.z + s.w;
+                        if r < TR && k < VSN {
                             if (ev & 1u) == 0u {
-                                vs[k] = s[i];
+                                vs[k] = sq;
                             } else {
-                                vs[k] = s[i] - vs[k];
+                                vs[k] = sq - vs[k];
+                            }
+                        }
+                    } else {
+                        for (var i = 0u; i < 4u; i++) {
+                            let xl = xq + i;
+                            let k = (r * VW + xl) * G + g;
+                            if r < TR && xl < rw && k < VSN {
+                                if (ev & 1u) == 0u {
+                                    vs[k] = s[i];
+                                } else {
+                                    vs[k] = s[i] - vs[k];
+                                }
                             }
                         }
                     }
@@ -196,11 +214,22 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     let xl = o.x - x0t;
                     if dx >= lo.x && dx <= hi.x && dy >= lo.y && dy <= hi.y && o.x >= x0t && xl + BL <= rw {
                         var s = 0u;
-                        let vb = (r * RWM + xl) * G + g;
-                        for (var i = 0u; i < BL; i++) {
-                            let k = vb + i * G;
-                            if k < VSN {
-                                s += vs[k];
+                        if QS {
+                            // xl and BL are multiples of 4 (planned so): BL / 4 quad sums
+                            let vb = (r * VW + (xl >> 2u)) * G + g;
+                            for (var i = 0u; i < BL / 4u; i++) {
+                                let k = vb + i * G;
+                                if k < VSN {
+                                    s += vs[k];
+                                }
+                            }
+                        } else {
+                            let vb = (r * VW + xl) * G + g;
+                            for (var i = 0u; i < BL; i++) {
+                                let k = vb + i * G;
+                                if k < VSN {
+                                    s += vs[k];
+                                }
                             }
                         }
                         let nx = u32(hi.x - lo.x + 1);
