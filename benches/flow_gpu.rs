@@ -11,6 +11,8 @@
 //!
 //! Before timing, each GPU engine's field on the benchmark frames must equal the CPU engine's
 //! exactly (panics otherwise), and it prints whether the dense fast path (cost volume) ran;
+//! after each `gpu/…` benchmark it prints the mean GPU time of each compute pass over 50 more
+//! pairs ("pass times", where the device has timestamp queries);
 //! `FLOWNAV_GPU_COST_VOLUME=0` benchmarks the per-block kernel instead.
 //!
 //! `cargo bench --bench flow_gpu` — the GPU is the first adapter wgpu finds (hardware first;
@@ -40,6 +42,33 @@ fn tiled(src: &LumaImage, dx: i64, dy: i64) -> LumaImage {
         (if m < n { m } else { 2 * n - 1 - m }) as usize
     };
     LumaImage::from_fn(1280, 720, |x, y| src.get(mirror(x as i64 - dx, w), mirror(y as i64 - dy, h)))
+}
+
+/// Mean GPU time per compute pass over 50 more `compute` calls (timestamp queries), printed as
+/// "LABEL: pass times (ms, mean of 50): prep …, costvol …, reduce …, total …"; nothing where
+/// the device has no timestamp queries.
+fn pass_times(engine: &mut GpuFlow, a: &LumaImage, b: &LumaImage, label: &str) {
+    if !engine.set_pass_timing(true) {
+        return;
+    }
+    let mut sums: Vec<(&'static str, f64)> = Vec::new();
+    let mut n = 0u32;
+    for _ in 0..50 {
+        engine.compute(a, b).unwrap();
+        let Some(times) = engine.last_pass_times() else { continue };
+        if sums.is_empty() {
+            sums = times.iter().map(|&(l, _)| (l, 0.0)).collect();
+        }
+        if sums.len() == times.len() {
+            sums.iter_mut().zip(&times).for_each(|(s, t)| s.1 += t.1);
+            n += 1;
+        }
+    }
+    engine.set_pass_timing(false);
+    if n > 0 {
+        let list: Vec<String> = sums.iter().map(|(l, s)| format!("{l} {:.3}", s / f64::from(n))).collect();
+        eprintln!("{label}: pass times (ms, mean of {n}): {}", list.join(", "));
+    }
 }
 
 fn bench(c: &mut Criterion) {
@@ -99,6 +128,7 @@ fn bench(c: &mut Criterion) {
         g.bench_function(format!("gpu/{name}"), |bch| {
             bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
         });
+        pass_times(&mut engine, &a, &b, &format!("gpu/{name}"));
         // A stream alternating a, b, a, b: each pair's A is the previous pair's B, so only B is
         // uploaded and preprocessed. `compute` waits for its own result (what `run` does);
         // `compute_pipelined` returns the previous pair's.
@@ -146,6 +176,7 @@ fn bench(c: &mut Criterion) {
             g.bench_function(format!("gpu/dense_tile_{tc}x{tr}_g{gg}"), |bch| {
                 bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
             });
+            pass_times(&mut engine, &a, &b, &format!("gpu/dense tile {shape:?}"));
         }
     }
     g.finish();

@@ -560,6 +560,32 @@ fn cost_volume_timing_information() {
                 .map_or(format!("at most {} per-block", f.vectors.len() * 17 * 17 * 32 * 32), |n| n.to_string()),
         );
         fields.push(f);
+        // Per-pass GPU times (timestamp queries, where the device has them): one entry per
+        // compute pass, then the total; the field is unchanged.
+        if g.set_pass_timing(true) {
+            let f = g.compute(&a, &b).unwrap().clone();
+            let times = g.last_pass_times().expect("pass times after a timed pair");
+            eprintln!("  pass times (ms): {times:?}");
+            let labels: Vec<&str> = times.iter().map(|t| t.0).collect();
+            let want: &[&str] = if mode == Some(true) {
+                &["prep", "costvol", "reduce", "total"]
+            } else {
+                &["prep", "match L0", "total"]
+            };
+            assert_eq!(labels, want);
+            assert!(times.iter().all(|t| t.1.is_finite() && t.1 >= 0.0), "{times:?}");
+            assert_identical(&f, &fields[fields.len() - 1], "timed pass");
+            // pipelined pairs: timing stays consistent with two pairs in flight
+            for _ in 0..3 {
+                g.compute_pipelined(&a, &b).unwrap();
+            }
+            g.flush().unwrap();
+            assert!(g.last_pass_times().is_some());
+            assert!(!g.set_pass_timing(false));
+            assert!(g.last_pass_times().is_none());
+        } else {
+            eprintln!("  no timestamp queries on this adapter: no pass times");
+        }
     }
     assert_identical(&fields[0], &fields[1], "timed pair");
 }
@@ -585,5 +611,16 @@ fn cost_volume_forced_tile_shapes_match() {
             assert_eq!(used, Some(tile), "{tile:?} fits 16 KiB of workgroup memory");
         }
         assert_identical(&f, &cpu, &format!("tile {tile:?}"));
+    }
+    // 128 px wide: cells of exactly 8 px, so the x origins are congruent mod 4 and the column
+    // sums are kept per quad of 4 columns (160 px above: per column).
+    let (a, b) = pair(128, 96, 162, 4.4, -2.7, false);
+    let cpu = CpuFlow::new(p.clone()).unwrap().compute(&a, &b).unwrap().clone();
+    for tile in [None, Some((1, 1, 1)), Some((16, 8, 3)), Some((3, 5, 4)), Some((4, 4, 33))] {
+        g.set_cost_volume_tile(tile);
+        let f = g.compute(&a, &b).unwrap().clone();
+        eprintln!("128x96, tile {tile:?}: cost volume {:?}", g.cost_volume_tile());
+        assert!(g.uses_cost_volume());
+        assert_identical(&f, &cpu, &format!("128x96, tile {tile:?}"));
     }
 }

@@ -37,6 +37,11 @@ const MATCH_WG: u32 = 256;
 const PREP_WG: u32 = 64;
 /// Most candidates one invocation accumulates per band (registers).
 const MAX_PER: u32 = 8;
+/// Most timed passes per pair (preprocessing, cost volume, one per matching level).
+const MAX_TIMED: u32 = 16;
+/// Labels of the matching passes per level (`match L0` is the finest).
+const MATCH_LABELS: [&str; 8] =
+    ["match L0", "match L1", "match L2", "match L3", "match L4", "match L5", "match L6", "match L7"];
 
 /// An adapter, its device and queue, shared by every GPU engine made from it.
 pub struct GpuContext {
@@ -100,9 +105,12 @@ impl GpuContext {
     /// Opens a device on `adapter` with the adapter's own limits.
     pub fn new(adapter: &wgpu::Adapter) -> Result<Self, FlowError> {
         let info = adapter.get_info();
+        // Timestamp queries (per-pass GPU timing, `GpuFlow::set_pass_timing`) where the adapter
+        // has them; nothing else depends on them.
         let desc = wgpu::DeviceDescriptor {
             label: Some("flownav flow"),
             required_limits: adapter.limits(),
+            required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
             ..Default::default()
         };
         let (device, queue) = pollster::block_on(adapter.request_device(&desc)).map_err(|e| {
@@ -202,6 +210,9 @@ struct MatchShape {
     level0: bool,
     /// Costs precomputed by the cost-volume kernel (`costvol.wgsl`): only the reductions run.
     pre: bool,
+    /// (PRE) The block of A and the patch of B around the best candidate cached in workgroup
+    /// memory for the texture energy and the SSDs.
+    pcache: bool,
 }
 
 impl MatchShape {
@@ -230,13 +241,20 @@ impl MatchShape {
             }
         }
         let (_, band, chunk) = best?;
-        Some(Self { wg, block, win, band, chunk, costs_in_workgroup, level0, pre: false })
+        Some(Self { wg, block, win, band, chunk, costs_in_workgroup, level0, pre: false, pcache: false })
     }
 
-    /// The reductions-only shape that reads the cost volume's global cost grids (level 0).
-    fn precomputed(wg: u32, block: u32, radius: u32) -> Self {
+    /// The reductions-only shape that reads the cost volume's global cost grids (level 0): the
+    /// costs are copied into workgroup memory (read once from global memory) when they fit in
+    /// half of `budget`, and the pixels of the texture energy and SSDs are cached when they fit
+    /// in the rest.
+    fn precomputed(wg: u32, block: u32, radius: u32, budget: u32) -> Self {
         let win = 2 * radius + 1;
-        Self { wg, block, win, band: 1, chunk: 1, costs_in_workgroup: false, level0: true, pre: true }
+        let costs_bytes = 4 * win * win;
+        let costs_in_workgroup = costs_bytes <= budget / 2;
+        let used = 64 + if costs_in_workgroup { costs_bytes } else { 4 };
+        let pcache = used + 4 * (block * block + (block + 2) * (block + 2)) <= budget;
+        Self { wg, block, win, band: 1, chunk: 1, costs_in_workgroup, level0: true, pre: true, pcache }
     }
 
     fn row_words(win: u32, block: u32) -> u32 {
@@ -252,7 +270,8 @@ impl MatchShape {
              const TAIL: bool = {tail};\nconst NXM: u32 = {win}u;\nconst NYM: u32 = {win}u;\nconst TY: u32 = {ty}u;\n\
              const CH: u32 = {ch}u;\nconst NCH: u32 = {nch}u;\nconst RW: u32 = {rw}u;\nconst PER: u32 = {per}u;\n\
              const SAN: u32 = {san}u;\nconst SBN: u32 = {sbn}u;\nconst WCN: u32 = {wcn}u;\n\
-             const COSTS_WG: bool = {cwg};\nconst IS_L0: bool = {l0};\nconst PRE: bool = {pre};\n{body}",
+             const COSTS_WG: bool = {cwg};\nconst IS_L0: bool = {l0};\nconst PRE: bool = {pre};\n\
+             const PCACHE: bool = {pcache};\nconst PW: u32 = {pw}u;\n{body}",
             wg = self.wg,
             bl = self.block,
             awf = self.block / 4,
@@ -261,12 +280,14 @@ impl MatchShape {
             ty = self.band,
             ch = self.chunk,
             nch = self.block.div_ceil(self.chunk),
-            san = self.chunk * aw,
-            sbn = (self.chunk + self.band - 1) * rw,
+            san = if self.pcache { self.block * self.block } else { self.chunk * aw },
+            sbn = if self.pcache { (self.block + 2) * (self.block + 2) } else { (self.chunk + self.band - 1) * rw },
             wcn = if self.costs_in_workgroup { self.win * self.win } else { 1 },
             cwg = self.costs_in_workgroup,
             l0 = self.level0,
             pre = self.pre,
+            pcache = self.pcache,
+            pw = self.block + 2,
             body = MATCH_WGSL,
         )
     }
@@ -281,10 +302,14 @@ struct CostVolShape {
     /// Tile of blocks per workgroup: columns, rows.
     tc: u32,
     tr: u32,
-    /// Displacement columns per group (workgroup memory: `g · rwm · tr` words).
+    /// Displacement columns per group (workgroup memory: `g · vw · tr` words).
     g: u32,
     /// Widest tile region, pixels.
     rwm: u32,
+    /// Column sums kept per 4 columns (one word per 4-column quad instead of one per column):
+    /// every block starts a whole number of quads after its tile region's start (all x origins
+    /// congruent mod 4) and the block side is a multiple of 4.
+    quads: bool,
     /// Offset of the row-tile table in the tile table.
     rowbase: u32,
 }
@@ -295,12 +320,21 @@ fn cv_rst(tr: u32) -> u32 {
     4 + 2 * tr
 }
 
+fn cv_vw(rwm: u32, quads: bool) -> u32 {
+    if quads { rwm.div_ceil(4) } else { rwm }
+}
+
 impl CostVolShape {
+    /// Words of V per block row and dx (one per column, or per quad of 4 columns).
+    fn vw(&self) -> u32 {
+        cv_vw(self.rwm, self.quads)
+    }
+
     fn source(&self) -> String {
         format!(
             "const WG: u32 = {wg}u;\nconst BL: u32 = {bl}u;\nconst R: u32 = {r}u;\nconst ND: u32 = {nd}u;\n\
              const TC: u32 = {tc}u;\nconst TR: u32 = {tr}u;\nconst G: u32 = {g}u;\nconst RWM: u32 = {rwm}u;\n\
-             const RWQ: u32 = {rwq}u;\n\
+             const RWQ: u32 = {rwq}u;\nconst QS: bool = {qs};\nconst VW: u32 = {vw}u;\n\
              const VSN: u32 = {vsn}u;\nconst CST: u32 = {cst}u;\nconst RST: u32 = {rst}u;\n\
              const ROWBASE: u32 = {rowbase}u;\n{body}",
             wg = self.wg,
@@ -312,7 +346,9 @@ impl CostVolShape {
             g = self.g,
             rwm = self.rwm,
             rwq = self.rwm.div_ceil(4),
-            vsn = self.g * self.rwm * self.tr,
+            qs = self.quads,
+            vw = self.vw(),
+            vsn = self.g * self.vw() * self.tr,
             cst = CV_CST,
             rst = cv_rst(self.tr),
             rowbase = self.rowbase,
@@ -365,10 +401,29 @@ fn plan_cost_volume(
         return None;
     }
     let (block, nd) = (block as u32, (2 * radius + 1) as u64);
+    let quads = block.is_multiple_of(4) && xs.iter().all(|x| (x - xs[0]).is_multiple_of(4));
     let mut best: Option<(u64, CostVolShape)> = None;
+    // The tiles in the order measured fastest on an H200 at 720p dense (docs/gpu.md): larger
+    // tiles compute fewer absolute differences. The first whose largest dx group with one
+    // phase-1 round (G · ⌈RWM/4⌉ ≤ WG) fits `budget` with G ≥ 4 is taken, the groups balanced
+    // (G = ⌈ND / ⌈ND / G_max⌉⌉); if none does, the serial-step model below chooses.
+    if force.is_none() {
+        for (tc, tr) in [(16u32, 16u32), (16, 8), (8, 8), (8, 4), (4, 4)] {
+            let ct = cv_tiles(&xs, tc as usize, block);
+            let rwm = ct.iter().map(|t| t.1).max()?;
+            let by_budget = u64::from(budget) / (4 * u64::from(cv_vw(rwm, quads)) * u64::from(tr));
+            let gmax = by_budget.min(u64::from(wg / rwm.div_ceil(4))).min(nd);
+            if gmax >= 4.min(nd) && gmax >= 1 {
+                let g = nd.div_ceil(nd.div_ceil(gmax)) as u32;
+                best = Some((0, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, rowbase: 0 }));
+                break;
+            }
+        }
+    }
     let tiles = [(4u32, 4u32), (8, 4), (4, 8), (8, 8), (16, 8), (8, 16), (16, 16)];
     let tiles = force.map_or(tiles.to_vec(), |(tc, tr, _)| vec![(tc, tr)]);
-    for (tc, tr) in tiles {
+    let planned = best.is_some();
+    for (tc, tr) in tiles.into_iter().filter(|_| !planned) {
         let ct = cv_tiles(&xs, tc as usize, block);
         let rt = cv_tiles(&ys, tr as usize, block);
         let rwm = ct.iter().map(|t| t.1).max()?;
@@ -376,7 +431,7 @@ fn plan_cost_volume(
         let ntiles = (ct.len() * rt.len()) as u64;
         let gs = force.map_or(1..=nd as u32, |(_, _, g)| g..=g);
         for g in gs {
-            if 4 * u64::from(g) * u64::from(rwm) * u64::from(tr) > u64::from(budget) {
+            if 4 * u64::from(g) * u64::from(cv_vw(rwm, quads)) * u64::from(tr) > u64::from(budget) {
                 break;
             }
             let groups = nd.div_ceil(u64::from(g));
@@ -385,7 +440,8 @@ fn plan_cost_volume(
             // Serial steps per workgroup (walks, block sums, barriers), times workgroups.
             let cost = ntiles * nd * groups * (rounds1 * rhm * 8 + rounds2 * u64::from(block) + 64);
             if best.is_none_or(|(c, _)| cost < c) {
-                best = Some((cost, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, rowbase: 0 }));
+                best =
+                    Some((cost, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, rowbase: 0 }));
             }
         }
     }
@@ -640,6 +696,20 @@ struct InFlight {
     staging: usize,
     submission: wgpu::SubmissionIndex,
     mapped: mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+    /// Labels of the passes whose timestamps this pair wrote (`GpuFlow::set_pass_timing`).
+    timed: Option<Vec<&'static str>>,
+}
+
+/// Timestamp queries of one pair: a begin and an end timestamp per compute pass, resolved and
+/// copied into `readback` (read when the pair is received).
+struct PassTiming {
+    queries: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    /// Whether a pair in flight owns `readback`.
+    busy: bool,
+    /// The last pair's (pass, milliseconds), and the whole span first begin → last end.
+    last: Option<Vec<(&'static str, f64)>>,
 }
 
 /// The GPU engine. Construct once (per parameter set), then call [`FlowEngine::compute`] or
@@ -663,6 +733,9 @@ pub struct GpuFlow {
     cost_volume: Option<bool>,
     /// Forced (TC, TR, G) of the cost volume (tests).
     cost_volume_tile: Option<(u32, u32, u32)>,
+    /// Per-pass GPU timing, when on (`set_pass_timing`, `FLOWNAV_GPU_TIMESTAMPS=1`) and the
+    /// device has timestamp queries.
+    timing: Option<PassTiming>,
 }
 
 impl std::fmt::Debug for GpuFlow {
@@ -694,7 +767,59 @@ impl GpuFlow {
                 _ => None,
             },
             cost_volume_tile: None,
-        })
+            timing: None,
+        }
+        .with_pass_timing(std::env::var("FLOWNAV_GPU_TIMESTAMPS").as_deref() == Ok("1")))
+    }
+
+    fn with_pass_timing(mut self, on: bool) -> Self {
+        self.set_pass_timing(on);
+        self
+    }
+
+    /// Turns per-pass GPU timing on or off (also `FLOWNAV_GPU_TIMESTAMPS=1`): each pair then
+    /// writes a timestamp before and after each of its compute passes (preprocessing, cost
+    /// volume, matching per level) and [`GpuFlow::last_pass_times`] returns them. Returns whether
+    /// timing is on: false where the device has no timestamp queries. For benchmarks.
+    #[doc(hidden)]
+    pub fn set_pass_timing(&mut self, on: bool) -> bool {
+        let dev = &self.ctx.device;
+        if !on || !dev.features().contains(wgpu::Features::TIMESTAMP_QUERY) {
+            let _ = self.flush();
+            self.timing = None;
+            return false;
+        }
+        if self.timing.is_none() {
+            let bytes = 8 * u64::from(2 * MAX_TIMED);
+            let buf = |label, usage| {
+                dev.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size: bytes,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            self.timing = Some(PassTiming {
+                queries: dev.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("flow pass times"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: 2 * MAX_TIMED,
+                }),
+                resolve: buf("flow pass times", wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC),
+                readback: buf("flow pass times readback", wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST),
+                busy: false,
+                last: None,
+            });
+        }
+        true
+    }
+
+    /// The GPU time of each compute pass of the last timed pair, in milliseconds (converted
+    /// with the queue's timestamp period), then `("total", first begin → last end)`; `None`
+    /// unless [`GpuFlow::set_pass_timing`] is on and a pair has been received since.
+    #[doc(hidden)]
+    pub fn last_pass_times(&self) -> Option<Vec<(&'static str, f64)>> {
+        self.timing.as_ref().and_then(|t| t.last.clone())
     }
 
     /// Forces the dense fast path (the cost volume) off (`Some(false)`), on wherever it
@@ -813,10 +938,27 @@ impl GpuFlow {
         self.last_b_slot = Some(slot_b);
 
         let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("flow") });
-        {
-            let mut pass =
-                enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("flow"), timestamp_writes: None });
-            let nlev = sized.dims.len();
+        // One compute pass per stage (preprocessing, cost volume, matching per level), each
+        // with a begin and an end timestamp when pass timing is on and free.
+        let timing = self.timing.as_mut().filter(|t| !t.busy);
+        let queries = timing.as_ref().map(|t| &t.queries);
+        let mut labels: Vec<&'static str> = Vec::new();
+        let mut begin = |enc: &mut wgpu::CommandEncoder, label: &'static str| {
+            let writes = queries.filter(|_| labels.len() < MAX_TIMED as usize).map(|q| {
+                let i = 2 * labels.len() as u32;
+                labels.push(label);
+                wgpu::ComputePassTimestampWrites {
+                    query_set: q,
+                    beginning_of_pass_write_index: Some(i),
+                    end_of_pass_write_index: Some(i + 1),
+                }
+            });
+            enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: writes })
+                .forget_lifetime()
+        };
+        let nlev = sized.dims.len();
+        if nlev > 1 || sized.slots[slot_b][0].hp.is_some() {
+            let mut pass = begin(&mut enc, "prep");
             for (s, upload) in [(slot_a, upload_a), (slot_b, true)] {
                 if !upload {
                     continue;
@@ -840,26 +982,39 @@ impl GpuFlow {
                     }
                 }
             }
-            if let Some((plan, bgs)) = &sized.cost_volume {
-                pass.set_pipeline(&self.pipes.costvols[&plan.shape]);
-                pass.set_bind_group(0, &bgs[slot_a], &[]);
-                pass.dispatch_workgroups(plan.ntc, plan.ntr, 2 * plan.shape.radius + 1);
-            }
-            for l in (0..nlev).rev() {
-                pass.set_pipeline(&self.pipes.matchers[&sized.shapes[l]]);
-                pass.set_bind_group(0, &sized.match_bgs[slot_a][l], &[]);
-                pass.dispatch_workgroups(sized.cols as u32, sized.rows as u32, 1);
-            }
+        }
+        if let Some((plan, bgs)) = &sized.cost_volume {
+            let mut pass = begin(&mut enc, "costvol");
+            pass.set_pipeline(&self.pipes.costvols[&plan.shape]);
+            pass.set_bind_group(0, &bgs[slot_a], &[]);
+            pass.dispatch_workgroups(plan.ntc, plan.ntr, 2 * plan.shape.radius + 1);
+        }
+        for l in (0..nlev).rev() {
+            let label = if sized.shapes[l].pre { "reduce" } else { MATCH_LABELS[l.min(MATCH_LABELS.len() - 1)] };
+            let mut pass = begin(&mut enc, label);
+            pass.set_pipeline(&self.pipes.matchers[&sized.shapes[l]]);
+            pass.set_bind_group(0, &sized.match_bgs[slot_a][l], &[]);
+            pass.dispatch_workgroups(sized.cols as u32, sized.rows as u32, 1);
         }
         let staging = (self.submitted % 2) as usize;
         enc.copy_buffer_to_buffer(&sized.result, 0, &sized.staging[staging], 0, sized.record_bytes);
+        let timed = match timing {
+            Some(t) if !labels.is_empty() => {
+                let n = 2 * labels.len() as u32;
+                enc.resolve_query_set(&t.queries, 0..n, &t.resolve, 0);
+                enc.copy_buffer_to_buffer(&t.resolve, 0, &t.readback, 0, 8 * u64::from(n));
+                t.busy = true;
+                Some(labels)
+            }
+            _ => None,
+        };
         let submission = ctx.queue.submit([enc.finish()]);
         let (tx, rx) = mpsc::channel();
         sized.staging[staging].map_async(wgpu::MapMode::Read, .., move |r| {
             let _ = tx.send(r);
         });
         self.submitted += 1;
-        self.pending.push_back(InFlight { staging, submission, mapped: rx });
+        self.pending.push_back(InFlight { staging, submission, mapped: rx, timed });
         Ok(())
     }
 
@@ -873,19 +1028,7 @@ impl GpuFlow {
         if let Some(e) = ctx.take_error() {
             return Err(gpu_err(format!("the GPU flow computation failed: {e}")));
         }
-        // the read-back's callback fires in a poll once its submission is done; the wait above
-        // can return before that poll ran it (seen on lavapipe under load), so wait for
-        // everything once more before calling it missing
-        let mapped = match job.mapped.try_recv() {
-            Err(mpsc::TryRecvError::Empty) => {
-                ctx.device
-                    .poll(wgpu::PollType::Wait { submission_index: None, timeout: None })
-                    .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
-                job.mapped.try_recv()
-            }
-            r => r,
-        };
-        match mapped {
+        match wait_mapped(ctx, &job.mapped)? {
             Ok(Ok(())) => {}
             Ok(Err(e)) => return Err(gpu_err(format!("reading the flow results back: {e}"))),
             Err(_) => return Err(gpu_err("the GPU did not deliver the flow results")),
@@ -898,6 +1041,10 @@ impl GpuFlow {
             fill_field(&self.params, sized, words, &mut self.field);
         }
         buf.unmap();
+        if let (Some(labels), Some(t)) = (&job.timed, self.timing.as_mut()) {
+            t.last = read_pass_times(ctx, &t.readback, labels)?;
+            t.busy = false;
+        }
         Ok(())
     }
 
@@ -964,7 +1111,7 @@ impl GpuFlow {
         let mut shapes = Vec::with_capacity(nlev);
         if let Some(plan) = &cv_plan {
             self.pipes.costvol(device, plan.shape)?;
-            let shape = MatchShape::precomputed(wg, p.block as u32, p.radius as u32);
+            let shape = MatchShape::precomputed(wg, p.block as u32, p.radius as u32, budget);
             self.pipes.matcher(device, shape)?;
             shapes.push(shape);
         }
@@ -981,7 +1128,7 @@ impl GpuFlow {
         }
         let gcost_words = shapes
             .iter()
-            .filter(|s| !s.costs_in_workgroup)
+            .filter(|s| !s.costs_in_workgroup || s.pre)
             .map(|s| (s.win * s.win) as u64 * n as u64)
             .max()
             .unwrap_or(1);
@@ -1148,6 +1295,59 @@ impl GpuFlow {
             record_bytes,
         })
     }
+}
+
+/// The result of a `map_async` whose submission has been waited for. Its callback fires in
+/// some poll after the submission is done, possibly one running on another thread that shares
+/// the device (seen on lavapipe under load), so wait for everything and give that poll up to
+/// 10 s to deliver it before calling it missing.
+fn wait_mapped<T>(ctx: &GpuContext, rx: &mpsc::Receiver<T>) -> Result<Result<T, ()>, FlowError> {
+    for _ in 0..1000 {
+        if let Ok(r) = rx.try_recv() {
+            return Ok(Ok(r));
+        }
+        ctx.device
+            .poll(wgpu::PollType::Wait { submission_index: None, timeout: None })
+            .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
+        if let Ok(r) = rx.recv_timeout(std::time::Duration::from_millis(10)) {
+            return Ok(Ok(r));
+        }
+    }
+    Ok(Err(()))
+}
+
+/// Maps the resolved timestamps of a received pair (begin and end per pass, in ticks) and
+/// converts them into milliseconds per pass, then the total span; `None` if any is missing.
+fn read_pass_times(
+    ctx: &GpuContext,
+    readback: &wgpu::Buffer,
+    labels: &[&'static str],
+) -> Result<Option<Vec<(&'static str, f64)>>, FlowError> {
+    let (tx, rx) = mpsc::channel();
+    readback.map_async(wgpu::MapMode::Read, .., move |r| {
+        let _ = tx.send(r);
+    });
+    match wait_mapped(ctx, &rx)? {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => return Err(gpu_err(format!("reading the pass times back: {e}"))),
+        Err(_) => return Err(gpu_err("the GPU did not deliver the pass times")),
+    }
+    let ticks: Vec<u64> = {
+        let view = readback.get_mapped_range(..).map_err(|e| gpu_err(format!("mapping the pass times: {e}")))?;
+        bytemuck::cast_slice::<u8, u64>(&view)[..2 * labels.len()].to_vec()
+    };
+    readback.unmap();
+    let ms_per_tick = f64::from(ctx.queue.get_timestamp_period()) * 1e-6;
+    let span = |a: u64, b: u64| b.checked_sub(a).map(|t| t as f64 * ms_per_tick);
+    let mut out = Vec::with_capacity(labels.len() + 1);
+    for (i, &label) in labels.iter().enumerate() {
+        let Some(ms) = span(ticks[2 * i], ticks[2 * i + 1]) else { return Ok(None) };
+        out.push((label, ms));
+    }
+    let (first, last) = (ticks[0], ticks[2 * labels.len() - 1]);
+    let Some(total) = span(first, last) else { return Ok(None) };
+    out.push(("total", total));
+    Ok(Some(out))
 }
 
 /// Writes frame `img` into a packed buffer of `ws` words per row (rows padded with zeros).
@@ -1348,6 +1548,9 @@ mod tests {
             "720p dense plan (48 KiB workgroup memory): {:?}, {} x {} tiles, {} absolute differences per pair",
             plan.shape, plan.ntc, plan.ntr, plan.abs_diffs
         );
+        // 16 × 16 blocks (the fastest measured on an H200), V per quad of columns, 6 dx per group
+        // (6 · 38 invocations walk in phase 1)
+        assert_eq!((plan.shape.tc, plan.shape.tr, plan.shape.g, plan.shape.quads), (16, 16, 6, true));
         // far below the per-block kernel's 14 080 · 1089 · 1024 = 15.7 G
         assert!(plan.abs_diffs < 2_500_000_000, "{}", plan.abs_diffs);
     }

@@ -5,14 +5,20 @@
 // TC × TR blocks and one candidate row dy (workgroup_id = (tile column, tile row, dy + R)),
 // and for groups of G candidate columns dx:
 //   phase 1: each invocation owns one dx and 4 adjacent pixel columns of the tile's region
-//            (one packed word of A and of B per row, read with funnel shifts) and walks down
+//            (one packed word of A and of B per row, read with funnel shifts; which words
+//            exist is decided once per walk, per row only B's row is checked) and walks down
 //            the region's rows once, keeping the running column sum S(y) of the differences;
 //            at each block row's first row it stores S, at its end row it stores S − stored,
-//            i.e. the column sum over that block row's BL rows: V[dx][r][x] (workgroup memory,
-//            each entry written and re-read only by the invocation that owns it);
+//            i.e. the column sum over that block row's BL rows: V[r][x][dx] (workgroup memory,
+//            dx fastest; each entry written and re-read only by the invocation that owns it);
+//            with QS (every block starts a multiple of 4 columns after the region's start and
+//            BL is a multiple of 4) V keeps one word per quad of 4 columns, their sum, x = xq/4,
+//            so V takes a quarter of the memory (more workgroups per multiprocessor);
 //   barrier;
-//   phase 2: each invocation sums B consecutive V columns into one block's cost at (dx, dy)
-//            and writes it into the block's cost grid (the layout match.wgsl uses with global
+//   phase 2: each invocation sums BL consecutive V columns (BL/4 quads with QS) into one
+//            block's cost at (dx, dy)
+//            (consecutive invocations: consecutive dx of one block) and writes it into the
+//            block's cost grid (the layout match.wgsl uses with global
 //            costs: bi·ND² + (dy − lo.y)·nx + (dx − lo.x)) when d is in the block's window;
 //   barrier (V is overwritten by the next group).
 // Integer sums, so the costs equal the CPU engine's SADs exactly. Every buffer and array index
@@ -21,7 +27,8 @@
 // control flow only (their loops depend on constants and workgroup-uniform values).
 //
 // The Rust side prepends: WG, BL (block side), R (radius), ND (2R+1), TC, TR (tile), G (dx per
-// group), RWM (widest tile region, px), RWQ (= ⌈RWM/4⌉), VSN (= G·RWM·TR), CST/RST (tile-table strides),
+// group), RWM (widest tile region, px), RWQ (= ⌈RWM/4⌉), QS, VW (V words per block row and dx:
+// RWQ with QS, else RWM), VSN (= G·VW·TR), CST/RST (tile-table strides),
 // ROWBASE (offset of the row-tile table).
 //
 // Tile table `tiles` (u32): column tile tc at tc·CST: [X0, region width, valid columns];
@@ -51,33 +58,20 @@ fn tile(i: u32) -> u32 {
     return 0u;
 }
 
-// Word `wx` of row `y` of frame A or B (`b`), 0 outside the rows' words or the buffer.
-fn word(b: bool, wx: i32, y: i32) -> u32 {
-    if wx < 0 || y < 0 || wx >= i32(lv.ws) || y >= i32(lv.h) {
-        return 0u;
-    }
-    let i = u32(y) * lv.ws + u32(wx);
-    if b {
-        if i < arrayLength(&hpb) {
-            return hpb[i];
-        }
-    } else if i < arrayLength(&hpa) {
+// Word `i` of frame A or B, 0 past the end of the buffer (never read: the callers check the
+// row and the word column first; this keeps every access explicitly in bounds).
+fn word_a(i: u32) -> u32 {
+    if i < arrayLength(&hpa) {
         return hpa[i];
     }
     return 0u;
 }
 
-// The 4 pixels (x .. x+3, y) of frame A or B, any alignment, packed low byte first. Pixels
-// outside the frame's rows read as 0 (or as the row padding past the width): they only enter
-// columns or candidates that no block uses (see phase 2), never a cost that is written.
-fn quad(b: bool, x: i32, y: i32) -> u32 {
-    let wx = x >> 2u;
-    let sh = u32(x & 3) * 8u;
-    let lo = word(b, wx, y);
-    if sh == 0u {
-        return lo;
+fn word_b(i: u32) -> u32 {
+    if i < arrayLength(&hpb) {
+        return hpb[i];
     }
-    return (lo >> sh) | (word(b, wx + 1, y) << (32u - sh));
+    return 0u;
 }
 
 fn unpack(w: u32) -> vec4<u32> {
@@ -101,35 +95,89 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     for (var grp = 0u; grp < ngroups; grp++) {
         let g0 = grp * G;
         // Phase 1: column sums of |A − B(· + d)| over each block row, per (dx, column); each
-        // invocation takes 4 adjacent columns (one packed word of each frame per row).
+        // invocation takes 4 adjacent columns (one packed word of each frame per row). The
+        // word columns and their validity are fixed per walk; per row only B's row is checked.
         for (var it = tid; it < G * RWQ; it += WG) {
             let g = it / RWQ;
             let xq = 4u * (it - g * RWQ);
             let dxi = g0 + g;
             if xq < rw && dxi < ND {
-                let ax = i32(x0t + xq);
-                let bx = ax + i32(dxi) - i32(R);
+                let ax = x0t + xq;
+                let bx = i32(ax) + i32(dxi) - i32(R);
+                let ws = i32(lv.ws);
+                let awx = ax >> 2u;
+                let ash = (ax & 3u) * 8u;
+                let a0 = awx < lv.ws;
+                let a1 = ash != 0u && awx + 1u < lv.ws;
+                let bwx = bx >> 2u;
+                let bsh = u32(bx & 3) * 8u;
+                let b0 = bwx >= 0 && bwx < ws;
+                let b1 = bsh != 0u && bwx + 1 >= 0 && bwx + 1 < ws;
                 var s = vec4<u32>(0u);
                 var y = 0u;
                 for (var e = 0u; e < nev; e++) {
                     let ev = tile(rb + 4u + e);
                     let ye = min(ev >> 12u, rh);
                     while y < ye {
-                        let ay = i32(y0t + y);
-                        let a = unpack(quad(false, ax, ay));
-                        let b = unpack(quad(true, bx, ay + dy));
+                        let ay = y0t + y;
+                        var alo = 0u;
+                        var ahi = 0u;
+                        if ay < lv.h {
+                            let ai = ay * lv.ws + awx;
+                            if a0 {
+                                alo = word_a(ai);
+                            }
+                            if a1 {
+                                ahi = word_a(ai + 1u);
+                            }
+                        }
+                        var aw = alo;
+                        if ash != 0u {
+                            aw = (alo >> ash) | (ahi << (32u - ash));
+                        }
+                        let by = i32(ay) + dy;
+                        var blo = 0u;
+                        var bhi = 0u;
+                        if by >= 0 && by < i32(lv.h) {
+                            let bi = u32(by * ws + bwx);
+                            if b0 {
+                                blo = word_b(bi);
+                            }
+                            if b1 {
+                                bhi = word_b(bi + 1u);
+                            }
+                        }
+                        var bw = blo;
+                        if bsh != 0u {
+                            bw = (blo >> bsh) | (bhi << (32u - bsh));
+                        }
+                        let a = unpack(aw);
+                        let b = unpack(bw);
                         s += max(a, b) - min(a, b);
                         y++;
                     }
                     let r = (ev >> 1u) & 2047u;
-                    for (var i = 0u; i < 4u; i++) {
-                        let xl = xq + i;
-                        let k = (g * TR + r) * RWM + xl;
-                        if r < TR && xl < rw && k < VSN {
+                    if QS {
+                        // one word per quad: the sum of the 4 columns
+                        let k = (r * VW + (xq >> 2u)) * G + g;
+                        let sq = s.x + s.y + s.z + s.w;
+                        if r < TR && k < VSN {
                             if (ev & 1u) == 0u {
-                                vs[k] = s[i];
+                                vs[k] = sq;
                             } else {
-                                vs[k] = s[i] - vs[k];
+                                vs[k] = sq - vs[k];
+                            }
+                        }
+                    } else {
+                        for (var i = 0u; i < 4u; i++) {
+                            let xl = xq + i;
+                            let k = (r * VW + xl) * G + g;
+                            if r < TR && xl < rw && k < VSN {
+                                if (ev & 1u) == 0u {
+                                    vs[k] = s[i];
+                                } else {
+                                    vs[k] = s[i] - vs[k];
+                                }
                             }
                         }
                     }
@@ -138,9 +186,11 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         }
         workgroupBarrier();
         // Phase 2: block costs = sums of BL consecutive column sums.
+        // Consecutive invocations take consecutive dx of one block: conflict-free reads of V
+        // (dx fastest) and contiguous writes into the block's cost grid.
         for (var it = tid; it < G * TR * TC; it += WG) {
-            let g = it / (TR * TC);
-            let rem = it - g * (TR * TC);
+            let rem = it / G;
+            let g = it - rem * G;
             let r = rem / TC;
             let c = rem - r * TC;
             let dxi = g0 + g;
@@ -164,11 +214,22 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     let xl = o.x - x0t;
                     if dx >= lo.x && dx <= hi.x && dy >= lo.y && dy <= hi.y && o.x >= x0t && xl + BL <= rw {
                         var s = 0u;
-                        let vb = (g * TR + r) * RWM + xl;
-                        for (var i = 0u; i < BL; i++) {
-                            let k = vb + i;
-                            if k < VSN {
-                                s += vs[k];
+                        if QS {
+                            // xl and BL are multiples of 4 (planned so): BL / 4 quad sums
+                            let vb = (r * VW + (xl >> 2u)) * G + g;
+                            for (var i = 0u; i < BL / 4u; i++) {
+                                let k = vb + i * G;
+                                if k < VSN {
+                                    s += vs[k];
+                                }
+                            }
+                        } else {
+                            let vb = (r * VW + xl) * G + g;
+                            for (var i = 0u; i < BL; i++) {
+                                let k = vb + i * G;
+                                if k < VSN {
+                                    s += vs[k];
+                                }
                             }
                         }
                         let nx = u32(hi.x - lo.x + 1);

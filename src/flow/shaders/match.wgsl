@@ -6,7 +6,10 @@
 // SAD of its PER candidates. Costs are exact integers; the best candidate and the ambiguity
 // flag come from workgroup reductions, so the result equals the exhaustive CPU search.
 // With PRE (the dense single-level fast path) the SAD loop is skipped: the costs were computed
-// by costvol.wgsl into gcost, in the same layout, and only the reductions run here.
+// by costvol.wgsl into gcost, in the same layout, and only the reductions run here; they are
+// read from global memory once, into workgroup memory (COSTS_WG) when it fits. With PCACHE the
+// texture energy and SSDs read the block of A and the (BL + 2)² patch of B around d1 from
+// workgroup memory (one pixel per word, loaded once) instead of global memory.
 
 struct Lv {
     w: u32, h: u32, ws: u32, ws_src: u32,
@@ -102,6 +105,14 @@ fn cost_set(base: u32, j: u32, c: u32) {
     }
 }
 
+// A cost written by costvol.wgsl (PRE), read from global memory.
+fn cost_pre(base: u32, j: u32) -> u32 {
+    if base + j < arrayLength(&gcost) {
+        return gcost[base + j];
+    }
+    return 0xffffffffu;
+}
+
 fn cost_get(base: u32, j: u32) -> u32 {
     if COSTS_WG {
         return wcost[j];
@@ -191,7 +202,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         for (var j = tid; j < nx * ny; j += WG) {
             let cy = j / nx;
             let cx = j - cy * nx;
-            let c = cost_get(gbase, j);
+            let c = cost_pre(gbase, j);
+            if COSTS_WG {
+                wcost[j] = c;
+            }
             let e = vec2<i32>(lo.x + i32(cx), lo.y + i32(cy)) - p;
             let key = (u32(e.x * e.x + e.y * e.y) << 16u) | (cy << 8u) | cx;
             if c < best_c || (c == best_c && key < best_k) {
@@ -317,6 +331,28 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let in_ym = d1.y > lo.y;
     let in_yp = d1.y < hi.y;
     if IS_L0 {
+        if PCACHE {
+            // The block of A (BL × BL) and the patch of B around d1 ((BL + 2)², covering the
+            // four neighbours) into workgroup memory, one pixel per word; patch pixels outside
+            // the frame (only next to a window cut by the frame, never used) read as 0.
+            for (var i = tid; i < BL * BL; i += WG) {
+                let y = i / BL;
+                let x = i - y * BL;
+                sa[i] = pix_a(u32(x0) + x, u32(y0) + y);
+            }
+            for (var i = tid; i < PW * PW; i += WG) {
+                let y = i / PW;
+                let x = i - y * PW;
+                let bx = x0 + d1.x - 1 + i32(x);
+                let by = y0 + d1.y - 1 + i32(y);
+                var v = 0u;
+                if bx >= 0 && by >= 0 && bx < i32(lv.w) && by < i32(lv.h) {
+                    v = pix_b(u32(bx), u32(by));
+                }
+                sb[i] = v;
+            }
+            workgroupBarrier();
+        }
         var g = 0u;
         var s = array<u32, 5>(0u, 0u, 0u, 0u, 0u);
         var offs = array<vec2<i32>, 5>(vec2<i32>(0, 0), vec2<i32>(-1, 0), vec2<i32>(1, 0), vec2<i32>(0, -1), vec2<i32>(0, 1));
@@ -326,6 +362,26 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             let x = i - y * BL;
             let ax = u32(x0) + x;
             let ay = u32(y0) + y;
+            if PCACHE {
+                let a = sa[i];
+                if x + 1u < BL {
+                    let q = sa[i + 1u];
+                    g += max(a, q) - min(a, q);
+                }
+                if y + 1u < BL {
+                    let q = sa[i + BL];
+                    g += max(a, q) - min(a, q);
+                }
+                for (var m = 0u; m < 5u; m++) {
+                    if use_n[m] {
+                        let o = offs[m];
+                        let q = sb[u32(i32((y + 1u) * PW + x + 1u) + o.y * i32(PW) + o.x)];
+                        let diff = max(a, q) - min(a, q);
+                        s[m] += diff * diff;
+                    }
+                }
+                continue;
+            }
             let a = pix_a(ax, ay);
             if x + 1u < BL {
                 let q = pix_a(ax + 1u, ay);
