@@ -26,6 +26,8 @@ use hal::LumaImage;
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex, mpsc};
 
+/// Prepended to every shader below: the level uniform and the pixel unpacking.
+const COMMON_WGSL: &str = include_str!("shaders/common.wgsl");
 const PREP_WGSL: &str = include_str!("shaders/prep.wgsl");
 const MATCH_WGSL: &str = include_str!("shaders/match.wgsl");
 const COSTVOL_WGSL: &str = include_str!("shaders/costvol.wgsl");
@@ -271,7 +273,7 @@ impl MatchShape {
              const CH: u32 = {ch}u;\nconst NCH: u32 = {nch}u;\nconst RW: u32 = {rw}u;\nconst PER: u32 = {per}u;\n\
              const SAN: u32 = {san}u;\nconst SBN: u32 = {sbn}u;\nconst WCN: u32 = {wcn}u;\n\
              const COSTS_WG: bool = {cwg};\nconst IS_L0: bool = {l0};\nconst PRE: bool = {pre};\n\
-             const PCACHE: bool = {pcache};\nconst PW: u32 = {pw}u;\n{body}",
+             const PCACHE: bool = {pcache};\nconst PW: u32 = {pw}u;\n{common}{body}",
             wg = self.wg,
             bl = self.block,
             awf = self.block / 4,
@@ -288,6 +290,7 @@ impl MatchShape {
             pre = self.pre,
             pcache = self.pcache,
             pw = self.block + 2,
+            common = COMMON_WGSL,
             body = MATCH_WGSL,
         )
     }
@@ -336,7 +339,7 @@ impl CostVolShape {
              const TC: u32 = {tc}u;\nconst TR: u32 = {tr}u;\nconst G: u32 = {g}u;\nconst RWM: u32 = {rwm}u;\n\
              const RWQ: u32 = {rwq}u;\nconst QS: bool = {qs};\nconst VW: u32 = {vw}u;\n\
              const VSN: u32 = {vsn}u;\nconst CST: u32 = {cst}u;\nconst RST: u32 = {rst}u;\n\
-             const ROWBASE: u32 = {rowbase}u;\n{body}",
+             const ROWBASE: u32 = {rowbase}u;\n{common}{body}",
             wg = self.wg,
             bl = self.block,
             r = self.radius,
@@ -352,6 +355,7 @@ impl CostVolShape {
             cst = CV_CST,
             rst = cv_rst(self.tr),
             rowbase = self.rowbase,
+            common = COMMON_WGSL,
             body = COSTVOL_WGSL,
         )
     }
@@ -528,7 +532,7 @@ impl Pipelines {
         checked(device, "building the preprocessing shaders", || {
             let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some("flow prep"),
-                source: wgpu::ShaderSource::Wgsl(PREP_WGSL.into()),
+                source: wgpu::ShaderSource::Wgsl(format!("{COMMON_WGSL}{PREP_WGSL}").into()),
             });
             let layout = |label, entries: &[wgpu::BindGroupLayoutEntry]| {
                 device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(label), entries })
@@ -602,56 +606,54 @@ impl Pipelines {
     }
 
     fn matcher(&mut self, device: &wgpu::Device, shape: MatchShape) -> Result<(), FlowError> {
-        if self.matchers.contains_key(&shape) {
-            return Ok(());
-        }
-        let layout = &self.match_pipeline_layout;
-        let pipeline = checked(device, "building the block-matching shader", || {
-            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("flow match"),
-                source: wgpu::ShaderSource::Wgsl(shape.source().into()),
-            });
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("flow match"),
-                layout: Some(layout),
-                module: &module,
-                entry_point: Some("main"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    zero_initialize_workgroup_memory: false,
-                    ..Default::default()
-                },
-                cache: None,
-            })
-        })?;
-        self.matchers.insert(shape, pipeline);
-        Ok(())
+        let what = "building the block-matching shader";
+        specialised(device, &mut self.matchers, &self.match_pipeline_layout, "flow match", what, shape, || {
+            shape.source()
+        })
     }
 
     fn costvol(&mut self, device: &wgpu::Device, shape: CostVolShape) -> Result<(), FlowError> {
-        if self.costvols.contains_key(&shape) {
-            return Ok(());
-        }
-        let layout = &self.costvol_pipeline_layout;
-        let pipeline = checked(device, "building the cost-volume shader", || {
-            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("flow costvol"),
-                source: wgpu::ShaderSource::Wgsl(shape.source().into()),
-            });
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("flow costvol"),
-                layout: Some(layout),
-                module: &module,
-                entry_point: Some("main"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    zero_initialize_workgroup_memory: false,
-                    ..Default::default()
-                },
-                cache: None,
-            })
-        })?;
-        self.costvols.insert(shape, pipeline);
-        Ok(())
+        let what = "building the cost-volume shader";
+        specialised(device, &mut self.costvols, &self.costvol_pipeline_layout, "flow costvol", what, shape, || {
+            shape.source()
+        })
     }
+}
+
+/// Compiles the pipeline of a shader specialised for `shape` (entry point `main`, the
+/// constants in `source`) into `cache`, unless it is there. Workgroup memory is not
+/// zero-initialised: every shader writes what it reads.
+fn specialised<K: std::hash::Hash + Eq>(
+    device: &wgpu::Device,
+    cache: &mut HashMap<K, wgpu::ComputePipeline>,
+    layout: &wgpu::PipelineLayout,
+    label: &str,
+    what: &str,
+    shape: K,
+    source: impl FnOnce() -> String,
+) -> Result<(), FlowError> {
+    if cache.contains_key(&shape) {
+        return Ok(());
+    }
+    let pipeline = checked(device, what, || {
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(label),
+            source: wgpu::ShaderSource::Wgsl(source().into()),
+        });
+        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(label),
+            layout: Some(layout),
+            module: &module,
+            entry_point: Some("main"),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                zero_initialize_workgroup_memory: false,
+                ..Default::default()
+            },
+            cache: None,
+        })
+    })?;
+    cache.insert(shape, pipeline);
+    Ok(())
 }
 
 /// Buffers of one frame slot at one pyramid level.

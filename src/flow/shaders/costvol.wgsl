@@ -36,13 +36,7 @@
 // event (y << 12) | (r << 1) | end, sorted by y: block row r of the tile starts (end = 0) or
 // ends (end = 1) before region row y.
 
-struct Lv {
-    w: u32, h: u32, ws: u32, ws_src: u32,
-    k: u32, n: u32, rows: u32, cols: u32,
-    coarsest: u32, radius: u32, q: u32, level: u32,
-}
-
-@group(0) @binding(0) var<uniform> lv: Lv;
+// `Lv`, `lv` (binding 0) and `unpack` come from common.wgsl, which the Rust side prepends.
 @group(0) @binding(1) var<storage, read> hpa: array<u32>;
 @group(0) @binding(2) var<storage, read> hpb: array<u32>;
 @group(0) @binding(3) var<storage, read> orig: array<vec2<u32>>;
@@ -72,10 +66,6 @@ fn word_b(i: u32) -> u32 {
         return hpb[i];
     }
     return 0u;
-}
-
-fn unpack(w: u32) -> vec4<u32> {
-    return vec4<u32>(w & 255u, (w >> 8u) & 255u, (w >> 16u) & 255u, w >> 24u);
 }
 
 @compute @workgroup_size(WG, 1, 1)

@@ -11,13 +11,7 @@
 // texture energy and SSDs read the block of A and the (BL + 2)² patch of B around d1 from
 // workgroup memory (one pixel per word, loaded once) instead of global memory.
 
-struct Lv {
-    w: u32, h: u32, ws: u32, ws_src: u32,
-    k: u32, n: u32, rows: u32, cols: u32,
-    coarsest: u32, radius: u32, q: u32, level: u32,
-}
-
-@group(0) @binding(0) var<uniform> lv: Lv;
+// `Lv`, `lv` (binding 0) and `unpack` come from common.wgsl, which the Rust side prepends.
 @group(0) @binding(1) var<storage, read> hpa: array<u32>;
 @group(0) @binding(2) var<storage, read> hpb: array<u32>;
 @group(0) @binding(3) var<storage, read> orig: array<vec2<u32>>;
@@ -36,10 +30,6 @@ var<workgroup> red_cost: atomic<u32>;
 var<workgroup> red_key: atomic<u32>;
 var<workgroup> red_amb: atomic<u32>;
 var<workgroup> red_sum: array<atomic<u32>, 6>;
-
-fn unpack(w: u32) -> vec4<u32> {
-    return vec4<u32>(w & 255u, (w >> 8u) & 255u, (w >> 16u) & 255u, w >> 24u);
-}
 
 fn sad4(a: u32, b: u32) -> u32 {
     let ua = unpack(a);

@@ -2,21 +2,11 @@
 // byte x % 4 of word x / 4; rows padded to `ws` words). Bit-identical to
 // `flow::prefilter::{downsample, highpass}` (docs/flow.md contract §2 and §3).
 
-struct Lv {
-    w: u32, h: u32, ws: u32, ws_src: u32,
-    k: u32, n: u32, rows: u32, cols: u32,
-    coarsest: u32, radius: u32, q: u32, level: u32,
-}
-
-@group(0) @binding(0) var<uniform> lv: Lv;
+// `Lv`, `lv` (binding 0) and `unpack` come from common.wgsl, which the Rust side prepends.
 @group(0) @binding(1) var<storage, read> src: array<u32>;
 @group(0) @binding(2) var<storage, read_write> cs_out: array<u32>;
 @group(0) @binding(3) var<storage, read> cs_in: array<u32>;
 @group(0) @binding(4) var<storage, read_write> dst: array<u32>;
-
-fn unpack(w: u32) -> vec4<u32> {
-    return vec4<u32>(w & 255u, (w >> 8u) & 255u, (w >> 16u) & 255u, w >> 24u);
-}
 
 fn pack(v: vec4<u32>) -> u32 {
     return v.x | (v.y << 8u) | (v.z << 16u) | (v.w << 24u);
