@@ -187,6 +187,8 @@ pub struct Pipeline {
     escape: Escape,
     /// The stopping gate's margin, m, and deceleration, m/s² ([`crate::mofis::Ahead`]).
     stop_gate: (f64, f64),
+    /// The footprint guard's clearance (m) and evidence ([`crate::mofis::MofisParams::guard_evidence`]).
+    guard: (f64, f64),
 }
 
 impl Pipeline {
@@ -214,6 +216,7 @@ impl Pipeline {
             spot_turn: SpotTurn::new(&cfg.mofis),
             escape: Escape::new(cfg.mofis.escape),
             stop_gate: (cfg.mofis.stop_margin_m, cfg.mofis.stop_decel_mps2),
+            guard: (cfg.mofis.guard_clearance_m, cfg.mofis.guard_evidence),
             flow,
             backend,
             offis: Offis::new(cfg.offis.clone())?,
@@ -420,7 +423,10 @@ impl Pipeline {
         let ahead =
             Ahead { front_m: front.max(0.0), stop_speed_mps: stop_speed(in_way - mp.robot_radius_m - margin, decel) };
         let view = Perception { obstacle: avoided, ..perception.clone() };
-        let mofis = self.mofis.step_sides(&view, other.as_ref(), Some(ahead), &steered, frame_dt)?;
+        // the footprint guard: the arcs against every remembered cell, faded ones included
+        let (memory, guard) = (&self.memory, self.guard);
+        let arc_free = move |curvature: f64, reach: f64| memory.arc_free(curvature, reach, guard.0, guard.1);
+        let mofis = self.mofis.step_guarded(&view, other.as_ref(), Some(ahead), &steered, frame_dt, Some(&arc_free))?;
         self.last_setpoint = mofis.setpoint;
         match turn_away {
             None => self.escape.observe(&goal, mofis.setpoint.v, frame_dt),

@@ -386,6 +386,58 @@ mod mofis {
     }
 
     #[test]
+    fn the_footprint_guard_bends_an_arc_off_what_lingers_beside_the_robot() {
+        // the max turn rate is 1 rad/s, so the guard's candidates are ±0.1, ±0.2, ±0.35, ...
+        let max_turn = ControlLimits::default().max_turn_rate;
+        let clear = |_: f64, reach: f64| reach;
+        let straight = goal(0.35, 0.0);
+        // the goal straight ahead, nothing lingering: the guard changes nothing
+        let mut m = mofis();
+        let free = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&clear)).unwrap();
+        assert_eq!(free.fused, BodyVelocity { v: 0.35, omega: 0.0 }, "{free:?}");
+        // something lingers ahead on the left: every arc that does not turn right by at least
+        // 0.3 rad/s is blocked 5 cm out; the guard takes the nearest clear one, at full speed
+        let left_blocked = |curvature: f64, reach: f64| if curvature * 0.35 <= -0.3 { reach } else { 0.05 };
+        let mut m = mofis();
+        let bent = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&left_blocked)).unwrap();
+        assert!((bent.fused.omega + 0.35 * max_turn).abs() < 1e-12, "{bent:?}");
+        assert_eq!(bent.fused.v, 0.35, "the guard bends, it does not brake: {bent:?}");
+        assert_eq!(bent.setpoint, bent.fused, "the limiter passes a settled command");
+        // it bends by at most guard_max_bend (0.5 rad/s): a clear arc only from 0.6 rad/s
+        // right on is out of its reach, and the command passes unchanged
+        let far_right = |curvature: f64, reach: f64| if curvature * 0.35 <= -0.6 { reach } else { 0.05 };
+        let mut m = mofis();
+        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
+        assert_eq!(out.fused, free.fused, "{out:?}");
+        // and the reach it asks for is the horizon's travel plus the distance to stop:
+        // 0.35 · 1.0 + 0.35² / (2 · 0.8)
+        let asked = std::cell::Cell::new(0.0);
+        let record = |_: f64, reach: f64| {
+            asked.set(reach);
+            reach
+        };
+        mofis().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&record)).unwrap();
+        assert!((asked.get() - (0.35 + 0.35 * 0.35 / 1.6)).abs() < 1e-12, "{}", asked.get());
+        // blocked whichever way: unchanged (what is ahead is the stopping gate's)
+        let blocked = |_: f64, _: f64| 0.0;
+        let mut m = mofis();
+        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&blocked)).unwrap();
+        assert_eq!(out.fused, free.fused, "{out:?}");
+        // turning on the spot and backing off are never checked
+        let never = |_: f64, _: f64| -> f64 { panic!("a turn on the spot has no arc to check") };
+        let mut m = mofis();
+        let spot = m.step_guarded(&Perception::default(), None, None, &goal(0.0, 0.5), SETTLED, Some(&never)).unwrap();
+        assert!(spot.fused.v == 0.0 && spot.fused.omega > 0.0, "{spot:?}");
+        let back = m.step_guarded(&Perception::default(), None, None, &goal(-0.1, 0.0), SETTLED, Some(&never)).unwrap();
+        assert!(back.fused.v < 0.0, "{back:?}");
+        // off (guard_evidence 0): never asked
+        let params = MofisParams { guard_evidence: 0.0, ..MofisParams::default() };
+        let mut off = Mofis::load(params, ControlLimits::default()).unwrap();
+        let out = off.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&never)).unwrap();
+        assert_eq!(out.fused, free.fused);
+    }
+
+    #[test]
     fn the_stopping_gate_caps_the_speed_whatever_the_rules_say() {
         use flownav::mofis::{Ahead, stop_speed};
         // √(2 · 0.8 · 0.1) = 0.4 m/s; nothing free: 0

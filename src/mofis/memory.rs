@@ -240,6 +240,9 @@ struct Cell {
     evidence: f64,
     /// Marked by a contact ([`ObstacleMemory::mark_contact`]), not seen.
     contact: bool,
+    /// Whether it was ever occupied (evidence at `occupied`): a cell of something seen over
+    /// frames, not one noisy point; the footprint guard keeps such cells while they fade.
+    confirmed: bool,
     /// The highest point that voted for the cell, m above the floor: a ray from the camera that
     /// passes over the cell lower than this would have hit what is there.
     top_m: f64,
@@ -253,6 +256,9 @@ pub const SIDE_FADE_M: f64 = 3.0;
 /// far ahead, m: the jitter of the heading moves near cells in and out of the path, and a wall
 /// 2 m ahead half a metre beside the path is no reason to swerve.
 pub const SIDE_REACH_M: f64 = 1.2;
+
+/// Step along an arc in [`ObstacleMemory::arc_free`], m.
+const ARC_STEP_M: f64 = 0.02;
 
 /// Bearing sectors across the field of view for the seen-through test.
 const SECTORS: usize = 24;
@@ -335,6 +341,16 @@ impl ObstacleMemory {
     /// queries.
     pub fn set_lane(&mut self, lane: Option<Lane>) {
         self.lane = lane;
+    }
+
+    /// Cells with at least `min_evidence`, robot frame (forward, left), m, with their evidence:
+    /// for traces and tests.
+    pub fn cells_above(&self, min_evidence: f64) -> Vec<([f64; 2], f64)> {
+        self.cells
+            .iter()
+            .filter(|(_, c)| c.evidence >= min_evidence)
+            .map(|(k, c)| (self.to_robot(*k), c.evidence))
+            .collect()
     }
 
     /// Occupied cells, robot frame (forward, left), m: for logging and tests.
@@ -421,8 +437,10 @@ impl ObstacleMemory {
         for cell in self.touched.chunk_by(|a, b| a.0 == b.0) {
             let (key, up, _) = cell[0];
             let vote: f64 = cell.iter().map(|t| t.2).sum();
-            let c = self.cells.entry(key).or_insert(Cell { evidence: 0.0, contact: false, top_m: up });
+            let c =
+                self.cells.entry(key).or_insert(Cell { evidence: 0.0, contact: false, confirmed: false, top_m: up });
             c.evidence = (c.evidence + vote.min(1.0)).min(self.params.max_evidence);
+            c.confirmed |= c.evidence >= self.params.occupied;
             c.top_m = c.top_m.max(up);
         }
     }
@@ -443,7 +461,8 @@ impl ObstacleMemory {
             let b = if n == 0 { 0.0 } else { half_arc_rad.abs() * k as f64 / n as f64 };
             let key = self.cell_at(r * b.cos(), r * b.sin());
             // as tall as anything: no ray clears a contact
-            self.cells.insert(key, Cell { evidence: p.max_evidence, contact: true, top_m: f64::INFINITY });
+            self.cells
+                .insert(key, Cell { evidence: p.max_evidence, contact: true, confirmed: true, top_m: f64::INFINITY });
         }
     }
 
@@ -560,6 +579,46 @@ impl ObstacleMemory {
     /// footprint widened by `path_margin_m` meets an occupied cell, up to `lookahead_m`.
     pub fn free_distance(&self, heading: f64, lookahead_m: f64) -> f64 {
         self.free_width(heading, self.params.robot_radius_m + self.params.path_margin_m, lookahead_m)
+    }
+
+    /// The footprint guard's query ([`crate::mofis::MofisParams::guard_evidence`]): how far
+    /// the robot's origin can drive along an arc of `curvature` (1/m, + = left) before its
+    /// footprint, widened by `clearance_m`, reaches the centre of a confirmed cell (one that
+    /// was occupied once) that still has at least `min_evidence` (occupied or fading, wall
+    /// band or not) and that the motion brings nearer; up to `reach_m`. A cell already inside
+    /// the widened footprint stops only motion toward it, so the robot can always drive away
+    /// from what it is beside.
+    pub fn arc_free(&self, curvature: f64, reach_m: f64, clearance_m: f64, min_evidence: f64) -> f64 {
+        if reach_m.is_nan() || reach_m <= 0.0 {
+            return 0.0;
+        }
+        let body = self.params.robot_radius_m + clearance_m;
+        let near = reach_m + body;
+        let steps = (reach_m / ARC_STEP_M).ceil().max(1.0) as usize;
+        let mut free = reach_m;
+        for (key, _) in self.cells.iter().filter(|(_, c)| c.confirmed && c.evidence >= min_evidence) {
+            let [f, l] = self.to_robot(*key);
+            let d0 = f.hypot(l);
+            if d0 > near {
+                continue;
+            }
+            for k in 1..=steps {
+                let s = reach_m * k as f64 / steps as f64;
+                if s >= free {
+                    break;
+                }
+                let (x, y) = match curvature.abs() < 1e-6 {
+                    true => (s, 0.0),
+                    false => ((curvature * s).sin() / curvature, (1.0 - (curvature * s).cos()) / curvature),
+                };
+                let d = (f - x).hypot(l - y);
+                if d < body && d < d0 - 1e-3 {
+                    free = free.min(reach_m * (k - 1) as f64 / steps as f64);
+                    break;
+                }
+            }
+        }
+        free
     }
 
     /// How far a band `half` wide (m) either side of `heading` (rad, robot frame) is free of
@@ -720,6 +779,49 @@ mod tests {
     fn step(m: &mut ObstacleMemory, odo: BodyVelocity, dt: f64, points: &[SurfacePoint]) {
         let measured = m.measurable(odo, dt, 0.0);
         m.update(odo, dt, points, measured);
+    }
+
+    /// Puts a cell at (`forward`, `left`) of the robot with `evidence`, confirmed or not.
+    fn put(m: &mut ObstacleMemory, forward: f64, left: f64, evidence: f64, confirmed: bool) {
+        let key = m.cell_at(forward, left);
+        m.cells.insert(key, Cell { evidence, contact: false, confirmed, top_m: 0.5 });
+    }
+
+    #[test]
+    fn the_guard_sees_an_arc_reach_a_lingering_cell() {
+        let (reach, clear, min) = (0.4, 0.04, 0.3);
+        let mut m = memory();
+        // a faded cell ahead on the left, its centre at (0.35, 0.15): below the occupied
+        // threshold, so no threat and no stop, but it was confirmed once
+        put(&mut m, 0.35, 0.15, 0.5, true);
+        assert!(!m.threat().present);
+        // straight on, the footprint (0.18 + 0.04 m) reaches the centre when the origin is
+        // √(0.22² − 0.15²) = 0.161 m short of it: after 0.189 m, in steps of 2 cm
+        let straight = m.arc_free(0.0, reach, clear, min);
+        assert!((straight - 0.18).abs() < 1e-9, "{straight}");
+        // turning left toward it is blocked sooner, turning right (radius 0.33 m) bends clear
+        assert!(m.arc_free(1.0, reach, clear, min) < straight);
+        assert_eq!(m.arc_free(-3.0, reach, clear, min), reach);
+        // one that has faded below the guard's evidence, or was never confirmed (one noisy
+        // point), does not count
+        let mut m = memory();
+        put(&mut m, 0.35, 0.15, 0.25, true);
+        put(&mut m, 0.35, 0.05, 1.0, false);
+        assert_eq!(m.arc_free(0.0, reach, clear, min), reach);
+        // a cell already inside the footprint blocks only the motion toward it
+        let mut m = memory();
+        put(&mut m, -0.05, 0.15, 2.0, true);
+        assert_eq!(m.arc_free(0.0, reach, clear, min), reach, "driving away from what is beside");
+        put(&mut m, 0.1, -0.1, 2.0, true);
+        assert_eq!(m.arc_free(0.0, reach, clear, min), 0.0, "driving into what is ahead inside it");
+        // two votes confirm a cell, and it stays confirmed as it fades
+        let mut m = memory();
+        step(&mut m, STILL, 0.0, &[pt(0.35, 0.15)]);
+        assert!(!m.cells.values().any(|c| c.confirmed), "one vote");
+        step(&mut m, STILL, 0.0, &[pt(0.35, 0.15)]);
+        assert!(m.cells.values().all(|c| c.confirmed));
+        m.cells.values_mut().for_each(|c| c.evidence = 0.4);
+        assert!(m.arc_free(0.0, reach, clear, min) < reach);
     }
 
     #[test]

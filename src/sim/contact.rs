@@ -69,6 +69,19 @@ impl ContactTrace {
             })
             .map(|c| format!("{:.2}@{:.2}", c[0].hypot(c[1]), c[1].atan2(c[0])))
             .collect();
+        // what is left of the object below the threshold (the cells kept until they fade to 0.05)
+        let faint: Vec<String> = s
+            .pipeline
+            .memory()
+            .cells_above(0.05)
+            .iter()
+            .filter(|(c, e)| {
+                let [x, y] = s.pose.transform(*c);
+                let at = s.world.clearance(x, y);
+                *e < s.pipeline.memory().params().occupied && at.object == near.object && at.distance_m < GHOST_M
+            })
+            .map(|(c, e)| format!("{:.2}@{:.2}:{:.2}", c[0].hypot(c[1]), c[1].atan2(c[0]), e))
+            .collect();
         let decided = s.last.map_or(String::new(), |o| {
             format!(
                 "goal_v={:.2} goal_a={:.2} steer_a={:.2} avoid_d={:.2?} avoid_b={:.2?} weight={:.2} set_v={:.2} set_w={:.2}",
@@ -84,7 +97,7 @@ impl ContactTrace {
         });
         tracing::trace!(
             target: "flownav::sim::contact",
-            "contact t={:.2} x={:.2} y={:.2} yaw={:.2} object={} at={:.2} held_ago={:.2} odo_v={:.2} odo_w={:.2} occupied={} on_object=[{}] {decided}",
+            "contact t={:.2} x={:.2} y={:.2} yaw={:.2} object={} at={:.2} held_ago={:.2} odo_v={:.2} odo_w={:.2} occupied={} on_object=[{}] faint=[{}] {decided}",
             s.t_s,
             s.pose.x,
             s.pose.y,
@@ -95,7 +108,8 @@ impl ContactTrace {
             s.odometry.v,
             s.odometry.omega,
             cells.len(),
-            on_object.join(" ")
+            on_object.join(" "),
+            faint.join(" ")
         );
     }
 }
