@@ -59,29 +59,24 @@ impl ContactTrace {
         }
         self.contacts = contacts;
         let held_at = near.obstacle.and_then(|k| self.held_at.get(k)).copied().unwrap_or(f64::NEG_INFINITY);
-        let cells = s.pipeline.memory().occupied();
-        let on_object: Vec<String> = cells
+        // every cell kept (down to 0.05): the occupied ones, and what is left below the threshold
+        let memory = s.pipeline.memory();
+        let occupied = memory.params().occupied;
+        let cells = memory.cells_above(0.05);
+        let on_near_object = |c: [f64; 2]| {
+            let [x, y] = s.pose.transform(c);
+            let at = s.world.clearance(x, y);
+            at.object == near.object && at.distance_m < GHOST_M
+        };
+        let polar = |c: [f64; 2]| format!("{:.2}@{:.2}", c[0].hypot(c[1]), c[1].atan2(c[0]));
+        let on_object: Vec<String> =
+            cells.iter().filter(|(c, e)| *e >= occupied && on_near_object(*c)).map(|(c, _)| polar(*c)).collect();
+        let faint: Vec<String> = cells
             .iter()
-            .filter(|c| {
-                let [x, y] = s.pose.transform(**c);
-                let at = s.world.clearance(x, y);
-                at.object == near.object && at.distance_m < GHOST_M
-            })
-            .map(|c| format!("{:.2}@{:.2}", c[0].hypot(c[1]), c[1].atan2(c[0])))
+            .filter(|(c, e)| *e < occupied && on_near_object(*c))
+            .map(|(c, e)| format!("{}:{e:.2}", polar(*c)))
             .collect();
-        // what is left of the object below the threshold (the cells kept until they fade to 0.05)
-        let faint: Vec<String> = s
-            .pipeline
-            .memory()
-            .cells_above(0.05)
-            .iter()
-            .filter(|(c, e)| {
-                let [x, y] = s.pose.transform(*c);
-                let at = s.world.clearance(x, y);
-                *e < s.pipeline.memory().params().occupied && at.object == near.object && at.distance_m < GHOST_M
-            })
-            .map(|(c, e)| format!("{:.2}@{:.2}:{:.2}", c[0].hypot(c[1]), c[1].atan2(c[0]), e))
-            .collect();
+        let held = cells.iter().filter(|(_, e)| *e >= occupied).count();
         let decided = s.last.map_or(String::new(), |o| {
             format!(
                 "goal_v={:.2} goal_a={:.2} steer_a={:.2} avoid_d={:.2?} avoid_b={:.2?} weight={:.2} set_v={:.2} set_w={:.2}",
@@ -107,7 +102,7 @@ impl ContactTrace {
             s.t_s - held_at,
             s.odometry.v,
             s.odometry.omega,
-            cells.len(),
+            held,
             on_object.join(" "),
             faint.join(" ")
         );

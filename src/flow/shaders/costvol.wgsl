@@ -54,6 +54,14 @@ fn tile(i: u32) -> u32 {
 
 // Word `i` of frame A or B, 0 past the end of the buffer (never read: the callers check the
 // row and the word column first; this keeps every access explicitly in bounds).
+// The 4 pixels starting `sh` bits into the word pair (lo, hi); sh is a multiple of 8.
+fn funnel(lo: u32, hi: u32, sh: u32) -> u32 {
+    if sh == 0u {
+        return lo;
+    }
+    return (lo >> sh) | (hi << (32u - sh));
+}
+
 fn word_a(i: u32) -> u32 {
     if i < arrayLength(&hpa) {
         return hpa[i];
@@ -121,10 +129,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                                 ahi = word_a(ai + 1u);
                             }
                         }
-                        var aw = alo;
-                        if ash != 0u {
-                            aw = (alo >> ash) | (ahi << (32u - ash));
-                        }
+                        let aw = funnel(alo, ahi, ash);
                         let by = i32(ay) + dy;
                         var blo = 0u;
                         var bhi = 0u;
@@ -137,10 +142,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                                 bhi = word_b(bi + 1u);
                             }
                         }
-                        var bw = blo;
-                        if bsh != 0u {
-                            bw = (blo >> bsh) | (bhi << (32u - bsh));
-                        }
+                        let bw = funnel(blo, bhi, bsh);
                         let a = unpack(aw);
                         let b = unpack(bw);
                         s += max(a, b) - min(a, b);
