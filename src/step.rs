@@ -425,7 +425,8 @@ impl Pipeline {
         let view = Perception { obstacle: avoided, ..perception.clone() };
         // the footprint guard: the arcs against every remembered cell, faded ones included
         let (memory, guard) = (&self.memory, self.guard);
-        let arc_free = move |curvature: f64, reach: f64| memory.arc_free(curvature, reach, guard.0, guard.1);
+        let arc_free =
+            move |curvature: f64, reach: f64, aside: bool| memory.arc_free(curvature, reach, guard.0, guard.1, aside);
         let mofis = self.mofis.step_guarded(&view, other.as_ref(), Some(ahead), &steered, frame_dt, Some(&arc_free))?;
         self.last_setpoint = mofis.setpoint;
         match turn_away {

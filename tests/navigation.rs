@@ -389,7 +389,7 @@ mod mofis {
     fn the_footprint_guard_bends_an_arc_off_what_lingers_beside_the_robot() {
         // the max turn rate is 1 rad/s, so the guard's candidates are ±0.1, ±0.2, ±0.35, ...
         let max_turn = ControlLimits::default().max_turn_rate;
-        let clear = |_: f64, reach: f64| reach;
+        let clear = |_: f64, reach: f64, _: bool| reach;
         let straight = goal(0.35, 0.0);
         // the goal straight ahead, nothing lingering: the guard changes nothing
         let mut m = mofis();
@@ -397,34 +397,59 @@ mod mofis {
         assert_eq!(free.fused, BodyVelocity { v: 0.35, omega: 0.0 }, "{free:?}");
         // something lingers ahead on the left: every arc that does not turn right by at least
         // 0.3 rad/s is blocked 5 cm out; the guard takes the nearest clear one, at full speed
-        let left_blocked = |curvature: f64, reach: f64| if curvature * 0.35 <= -0.3 { reach } else { 0.05 };
+        let left_blocked = |curvature: f64, reach: f64, _: bool| if curvature * 0.35 <= -0.3 { reach } else { 0.05 };
         let mut m = mofis();
         let bent = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&left_blocked)).unwrap();
         assert!((bent.fused.omega + 0.35 * max_turn).abs() < 1e-12, "{bent:?}");
-        assert_eq!(bent.fused.v, 0.35, "the guard bends, it does not brake: {bent:?}");
+        assert_eq!(bent.fused.v, 0.35, "a bend is enough, so it does not slow: {bent:?}");
         assert_eq!(bent.setpoint, bent.fused, "the limiter passes a settled command");
-        // it bends by at most guard_max_bend (0.5 rad/s): a clear arc only from 0.6 rad/s
-        // right on is out of its reach, and the command passes unchanged
-        let far_right = |curvature: f64, reach: f64| if curvature * 0.35 <= -0.6 { reach } else { 0.05 };
-        let mut m = mofis();
-        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
-        assert_eq!(out.fused, free.fused, "{out:?}");
-        // and the reach it asks for is the horizon's travel plus the distance to stop:
+        // the reach it asks for is the horizon's travel plus the distance to stop:
         // 0.35 · 1.0 + 0.35² / (2 · 0.8)
         let asked = std::cell::Cell::new(0.0);
-        let record = |_: f64, reach: f64| {
+        let record = |_: f64, reach: f64, _: bool| {
             asked.set(reach);
             reach
         };
         mofis().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&record)).unwrap();
         assert!((asked.get() - (0.35 + 0.35 * 0.35 / 1.6)).abs() < 1e-12, "{}", asked.get());
-        // blocked whichever way: unchanged (what is ahead is the stopping gate's)
-        let blocked = |_: f64, _: f64| 0.0;
+        // it bends by at most guard_max_bend (0.5 rad/s): the arcs are clear only from a
+        // curvature of 0.6 / 0.35 right on, out of the bend's reach at full speed; at 0.7 of
+        // the speed the same 0.5 rad/s turns tighter (0.5 / 0.245 > 0.6 / 0.35), and that is
+        // the fastest clear arc (0.35 rad/s at 0.245 m/s is not)
+        let far_right = |curvature: f64, reach: f64, _: bool| if curvature * 0.35 <= -0.6 { reach } else { 0.05 };
         let mut m = mofis();
-        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&blocked)).unwrap();
+        let slow = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
+        assert!((slow.fused.v - 0.7 * 0.35).abs() < 1e-12, "{slow:?}");
+        assert!((slow.fused.omega + 0.5 * max_turn).abs() < 1e-12, "{slow:?}");
+        // blocked whichever way and however slow, 5 cm out, by what is beside (out of view):
+        // it brakes to the speed that stops in 5 cm, √(2 · 0.8 · 0.05) = 0.283 m/s, on the
+        // command's own arc (all equally free)
+        let beside = |_: f64, _: f64, _: bool| 0.05;
+        let mut m = mofis();
+        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
+        assert!((out.fused.v - (2.0f64 * 0.8 * 0.05).sqrt()).abs() < 1e-12, "{out:?}");
+        assert_eq!(out.fused.omega, 0.0, "{out:?}");
+        // nothing free at all beside: it stops, and still turns as it was told
+        let touching = |_: f64, _: f64, _: bool| 0.0;
+        let out = mofis()
+            .step_guarded(&Perception::default(), None, None, &goal(0.35, 0.1), SETTLED, Some(&touching))
+            .unwrap();
+        assert_eq!(out.fused.v, 0.0, "{out:?}");
+        assert!((out.fused.omega - 1.5 * 0.1).abs() < 1e-12, "{out:?}");
+        // the same cells in view (the out-of-view query finds the arc clear): unchanged, what
+        // is ahead in view is the stopping gate's
+        let in_view = |_: f64, reach: f64, aside: bool| if aside { reach } else { 0.0 };
+        let mut m = mofis();
+        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&in_view)).unwrap();
+        assert_eq!(out.fused, free.fused, "{out:?}");
+        // with guard_brake off, the fifteenth session's guard: bend or pass unchanged
+        let params = MofisParams { guard_brake: false, ..MofisParams::default() };
+        let mut bend_only = Mofis::load(params, ControlLimits::default()).unwrap();
+        let out =
+            bend_only.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert_eq!(out.fused, free.fused, "{out:?}");
         // turning on the spot and backing off are never checked
-        let never = |_: f64, _: f64| -> f64 { panic!("a turn on the spot has no arc to check") };
+        let never = |_: f64, _: f64, _: bool| -> f64 { panic!("a turn on the spot has no arc to check") };
         let mut m = mofis();
         let spot = m.step_guarded(&Perception::default(), None, None, &goal(0.0, 0.5), SETTLED, Some(&never)).unwrap();
         assert!(spot.fused.v == 0.0 && spot.fused.omega > 0.0, "{spot:?}");

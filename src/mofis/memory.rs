@@ -343,13 +343,13 @@ impl ObstacleMemory {
         self.lane = lane;
     }
 
-    /// Cells with at least `min_evidence`, robot frame (forward, left), m, with their evidence:
-    /// for traces and tests.
-    pub fn cells_above(&self, min_evidence: f64) -> Vec<([f64; 2], f64)> {
+    /// Cells with at least `min_evidence`, robot frame (forward, left), m, with their evidence
+    /// and whether they were ever occupied (confirmed): for traces and tests.
+    pub fn cells_above(&self, min_evidence: f64) -> Vec<([f64; 2], f64, bool)> {
         self.cells
             .iter()
             .filter(|(_, c)| c.evidence >= min_evidence)
-            .map(|(k, c)| (self.to_robot(*k), c.evidence))
+            .map(|(k, c)| (self.to_robot(*k), c.evidence, c.confirmed))
             .collect()
     }
 
@@ -587,11 +587,13 @@ impl ObstacleMemory {
     /// was occupied once) that still has at least `min_evidence` (occupied or fading, wall
     /// band or not) and that the motion brings nearer; up to `reach_m`. A cell already inside
     /// the widened footprint stops only motion toward it, so the robot can always drive away
-    /// from what it is beside.
-    pub fn arc_free(&self, curvature: f64, reach_m: f64, clearance_m: f64, min_evidence: f64) -> f64 {
+    /// from what it is beside. `aside`: only the cells out of the camera's field of view count
+    /// (the guard's brake: what is in view is measured again, and the stopping gate's).
+    pub fn arc_free(&self, curvature: f64, reach_m: f64, clearance_m: f64, min_evidence: f64, aside: bool) -> f64 {
         if reach_m.is_nan() || reach_m <= 0.0 {
             return 0.0;
         }
+        let half_fov = self.half_fov_rad;
         let body = self.params.robot_radius_m + clearance_m;
         let near = reach_m + body;
         let steps = (reach_m / ARC_STEP_M).ceil().max(1.0) as usize;
@@ -599,7 +601,7 @@ impl ObstacleMemory {
         for (key, _) in self.cells.iter().filter(|(_, c)| c.confirmed && c.evidence >= min_evidence) {
             let [f, l] = self.to_robot(*key);
             let d0 = f.hypot(l);
-            if d0 > near {
+            if d0 > near || (aside && f > 0.0 && l.atan2(f).abs() < half_fov) {
                 continue;
             }
             for k in 1..=steps {
@@ -797,23 +799,23 @@ mod tests {
         assert!(!m.threat().present);
         // straight on, the footprint (0.18 + 0.04 m) reaches the centre when the origin is
         // √(0.22² − 0.15²) = 0.161 m short of it: after 0.189 m, in steps of 2 cm
-        let straight = m.arc_free(0.0, reach, clear, min);
+        let straight = m.arc_free(0.0, reach, clear, min, false);
         assert!((straight - 0.18).abs() < 1e-9, "{straight}");
         // turning left toward it is blocked sooner, turning right (radius 0.33 m) bends clear
-        assert!(m.arc_free(1.0, reach, clear, min) < straight);
-        assert_eq!(m.arc_free(-3.0, reach, clear, min), reach);
+        assert!(m.arc_free(1.0, reach, clear, min, false) < straight);
+        assert_eq!(m.arc_free(-3.0, reach, clear, min, false), reach);
         // one that has faded below the guard's evidence, or was never confirmed (one noisy
         // point), does not count
         let mut m = memory();
         put(&mut m, 0.35, 0.15, 0.25, true);
         put(&mut m, 0.35, 0.05, 1.0, false);
-        assert_eq!(m.arc_free(0.0, reach, clear, min), reach);
+        assert_eq!(m.arc_free(0.0, reach, clear, min, false), reach);
         // a cell already inside the footprint blocks only the motion toward it
         let mut m = memory();
         put(&mut m, -0.05, 0.15, 2.0, true);
-        assert_eq!(m.arc_free(0.0, reach, clear, min), reach, "driving away from what is beside");
+        assert_eq!(m.arc_free(0.0, reach, clear, min, false), reach, "driving away from what is beside");
         put(&mut m, 0.1, -0.1, 2.0, true);
-        assert_eq!(m.arc_free(0.0, reach, clear, min), 0.0, "driving into what is ahead inside it");
+        assert_eq!(m.arc_free(0.0, reach, clear, min, false), 0.0, "driving into what is ahead inside it");
         // two votes confirm a cell, and it stays confirmed as it fades
         let mut m = memory();
         step(&mut m, STILL, 0.0, &[pt(0.35, 0.15)]);
@@ -821,7 +823,18 @@ mod tests {
         step(&mut m, STILL, 0.0, &[pt(0.35, 0.15)]);
         assert!(m.cells.values().all(|c| c.confirmed));
         m.cells.values_mut().for_each(|c| c.evidence = 0.4);
-        assert!(m.arc_free(0.0, reach, clear, min) < reach);
+        assert!(m.arc_free(0.0, reach, clear, min, false) < reach);
+        // `aside`: only the cells out of the camera's view count, the brake's query. The cell at
+        // (0.35, 0.15) is 0.41 rad off the heading, in view (±0.47 rad); one at (0.25, 0.15),
+        // 0.54 rad off, is out of it, and the footprint reaches its centre after
+        // 0.25 − √(0.22² − 0.15²) = 0.089 m: at the fifth 2 cm step
+        let mut m = memory();
+        put(&mut m, 0.35, 0.15, 0.5, true);
+        assert!(m.arc_free(0.0, reach, clear, min, false) < reach);
+        assert_eq!(m.arc_free(0.0, reach, clear, min, true), reach, "in view");
+        put(&mut m, 0.25, 0.15, 0.5, true);
+        let aside = m.arc_free(0.0, reach, clear, min, true);
+        assert!((aside - 0.08).abs() < 1e-9, "{aside}");
     }
 
     #[test]

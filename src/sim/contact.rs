@@ -70,13 +70,13 @@ impl ContactTrace {
         };
         let polar = |c: [f64; 2]| format!("{:.2}@{:.2}", c[0].hypot(c[1]), c[1].atan2(c[0]));
         let on_object: Vec<String> =
-            cells.iter().filter(|(c, e)| *e >= occupied && on_near_object(*c)).map(|(c, _)| polar(*c)).collect();
+            cells.iter().filter(|(c, e, _)| *e >= occupied && on_near_object(*c)).map(|(c, ..)| polar(*c)).collect();
         let faint: Vec<String> = cells
             .iter()
-            .filter(|(c, e)| *e < occupied && on_near_object(*c))
-            .map(|(c, e)| format!("{}:{e:.2}", polar(*c)))
+            .filter(|(c, e, _)| *e < occupied && on_near_object(*c))
+            .map(|(c, e, confirmed)| format!("{}:{e:.2}{}", polar(*c), if *confirmed { "*" } else { "" }))
             .collect();
-        let held = cells.iter().filter(|(_, e)| *e >= occupied).count();
+        let held = cells.iter().filter(|(_, e, _)| *e >= occupied).count();
         let decided = s.last.map_or(String::new(), |o| {
             format!(
                 "goal_v={:.2} goal_a={:.2} steer_a={:.2} avoid_d={:.2?} avoid_b={:.2?} weight={:.2} set_v={:.2} set_w={:.2}",
