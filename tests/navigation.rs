@@ -413,25 +413,39 @@ mod mofis {
         mofis().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&record)).unwrap();
         assert!((asked.get() - (0.35 + 0.35 * 0.35 / 1.6)).abs() < 1e-12, "{}", asked.get());
         // it bends by at most guard_max_bend (0.5 rad/s): the arcs are clear only from a
-        // curvature of 0.6 / 0.35 right on, out of the bend's reach at full speed; at 0.7 of
-        // the speed the same 0.5 rad/s turns tighter (0.5 / 0.245 > 0.6 / 0.35), and that is
-        // the fastest clear arc (0.35 rad/s at 0.245 m/s is not)
+        // curvature of 0.6 / 0.35 right on, out of the bend's reach at full speed, and by
+        // default the command passes unchanged
         let far_right = |curvature: f64, reach: f64, _: bool| if curvature * 0.35 <= -0.6 { reach } else { 0.05 };
         let mut m = mofis();
+        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
+        assert_eq!(out.fused, free.fused, "{out:?}");
+        // with guard_slow, at 0.7 of the speed the same 0.5 rad/s turns tighter
+        // (0.5 / 0.245 > 0.6 / 0.35), and that is the fastest clear arc (0.35 rad/s at
+        // 0.245 m/s is not)
+        let slower = MofisParams { guard_slow: true, ..MofisParams::default() };
+        let mut m = Mofis::load(slower.clone(), ControlLimits::default()).unwrap();
         let slow = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
         assert!((slow.fused.v - 0.7 * 0.35).abs() < 1e-12, "{slow:?}");
         assert!((slow.fused.omega + 0.5 * max_turn).abs() < 1e-12, "{slow:?}");
         // blocked whichever way and however slow, 5 cm out, by what is beside (out of view):
-        // it brakes to the speed that stops in 5 cm, √(2 · 0.8 · 0.05) = 0.283 m/s, on the
-        // command's own arc (all equally free)
+        // unchanged by default and with guard_slow alone; with guard_brake it brakes to the
+        // speed that stops in 5 cm, √(2 · 0.8 · 0.05) = 0.283 m/s, on the command's own arc
+        // (all equally free)
         let beside = |_: f64, _: f64, _: bool| 0.05;
         let mut m = mofis();
         let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
+        assert_eq!(out.fused, free.fused, "{out:?}");
+        let mut m = Mofis::load(slower.clone(), ControlLimits::default()).unwrap();
+        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
+        assert_eq!(out.fused, free.fused, "{out:?}");
+        let braking = MofisParams { guard_brake: true, ..slower };
+        let brake = || Mofis::load(braking.clone(), ControlLimits::default()).unwrap();
+        let out = brake().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert!((out.fused.v - (2.0f64 * 0.8 * 0.05).sqrt()).abs() < 1e-12, "{out:?}");
         assert_eq!(out.fused.omega, 0.0, "{out:?}");
         // nothing free at all beside: it stops, and still turns as it was told
         let touching = |_: f64, _: f64, _: bool| 0.0;
-        let out = mofis()
+        let out = brake()
             .step_guarded(&Perception::default(), None, None, &goal(0.35, 0.1), SETTLED, Some(&touching))
             .unwrap();
         assert_eq!(out.fused.v, 0.0, "{out:?}");
@@ -439,14 +453,7 @@ mod mofis {
         // the same cells in view (the out-of-view query finds the arc clear): unchanged, what
         // is ahead in view is the stopping gate's
         let in_view = |_: f64, reach: f64, aside: bool| if aside { reach } else { 0.0 };
-        let mut m = mofis();
-        let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&in_view)).unwrap();
-        assert_eq!(out.fused, free.fused, "{out:?}");
-        // with guard_brake off, the fifteenth session's guard: bend or pass unchanged
-        let params = MofisParams { guard_brake: false, ..MofisParams::default() };
-        let mut bend_only = Mofis::load(params, ControlLimits::default()).unwrap();
-        let out =
-            bend_only.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
+        let out = brake().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&in_view)).unwrap();
         assert_eq!(out.fused, free.fused, "{out:?}");
         // turning on the spot and backing off are never checked
         let never = |_: f64, _: f64, _: bool| -> f64 { panic!("a turn on the spot has no arc to check") };

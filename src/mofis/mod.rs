@@ -85,11 +85,18 @@ pub struct MofisParams {
     /// holds, and a robot bent hard away from a lingering cell ran into an obstacle ahead that
     /// the memory did not hold (seeds 9 and 15, with no limit).
     pub guard_max_bend: f64,
-    /// ... and when no turn rate within that bend is clear: brake to the speed from which the
-    /// robot stops (at `stop_decel_mps2`) before its footprint reaches the cell on the freest
-    /// of those arcs, and take that arc. Without it the guard passed such a command on
-    /// unchanged, and the robot drove on at full speed into what the guard had seen for a
-    /// second: 4 of the 4 contacts traced on seeds 34, 81, 83 and 105 (sixteenth session).
+    /// ... and when no turn rate within that bend is clear, try the same at 0.7, 0.5, 0.35 and
+    /// 0.25 of the speed, where the same bend turns tighter and the reach is shorter (off by
+    /// default: not yet measured on all seeds) ...
+    pub guard_slow: bool,
+    /// ... and when none of those is clear either: brake to the speed from which the robot
+    /// stops (at `stop_decel_mps2`) before its footprint reaches a cell out of the camera's
+    /// view on the freest of the full-speed arcs within the bend, and take that arc. Off by
+    /// default: the guard saw the 4 traced contacts (seeds 34, 81, 83, 105) coming 1–1.5 s
+    /// ahead and passed the command on at 0.35 m/s, and braking (with `guard_slow`) removed
+    /// those contacts and all on seeds 0..19, but on seeds 20..39 it left 2 runs unarrived and
+    /// 2 with contact, against none and 1 without it: the robot stood in front of faded cells
+    /// beside it (docs/missions-history.md, sixteenth session).
     pub guard_brake: bool,
 }
 
@@ -112,7 +119,8 @@ impl Default for MofisParams {
             guard_clearance_m: 0.04,
             guard_horizon_s: 1.0,
             guard_max_bend: 0.5,
-            guard_brake: true,
+            guard_slow: false,
+            guard_brake: false,
         }
     }
 }
@@ -498,11 +506,11 @@ impl Mofis {
     /// The footprint guard ([`MofisParams::guard_evidence`]) on a command `cmd`: unchanged when
     /// its arc is clear for [`guard_reach`](Self::guard_reach); else, at the same speed, the
     /// turn rate nearest its own, among [`GUARD_TURNS`] fractions of the maximum and within
-    /// `guard_max_bend` of it, whose arc is clear; else (with `guard_brake`) the same at the
+    /// `guard_max_bend` of it, whose arc is clear; else (with `guard_slow`) the same at the
     /// fastest of the [`GUARD_SLOWER`] speeds, where the same bend turns tighter and the reach
-    /// is shorter; else the freest of those arcs at the full speed's reach, counting only the
+    /// is shorter; else (with `guard_brake`) the freest of those arcs at the full speed's reach, counting only the
     /// cells out of the camera's view, at the speed that stops short on it (unchanged when
-    /// that arc is clear: what is in view is the stopping gate's). It never slows for what is
+    /// that arc is clear: what is in view is the stopping gate's); else unchanged. It never slows for what is
     /// in view alone: braking for every cell, down to a stop, left the robot standing in front
     /// of lingering phantom cells that nothing could clear (mean mission time 91 → 110–132 s
     /// on seeds 0..5; docs/missions-history.md). Turning on the spot and backing off pass: a
@@ -534,7 +542,7 @@ impl Mofis {
         }
         // slower, where the same bend turns tighter and the look-ahead is shorter: the fastest
         // of the slower speeds with a clear arc within the bend
-        if self.params.guard_brake {
+        if self.params.guard_slow {
             for frac in GUARD_SLOWER {
                 let v = cmd.v * frac;
                 let reach = self.guard_reach(v);
