@@ -86,8 +86,9 @@ pub struct MofisParams {
     /// the memory did not hold (seeds 9 and 15, with no limit).
     pub guard_max_bend: f64,
     /// ... and when no turn rate within that bend is clear, try the same at 0.7, 0.5, 0.35 and
-    /// 0.25 of the speed, where the same bend turns tighter and the reach is shorter (off by
-    /// default: not yet measured on all seeds) ...
+    /// 0.25 of the speed, where the same bend turns tighter and the reach is shorter. Off by
+    /// default: on seeds 0..39 it left 1 run unarrived and 3 with contact, against none and 2
+    /// without it (docs/missions-history.md, sixteenth session) ...
     pub guard_slow: bool,
     /// ... and when none of those is clear either: brake to the speed from which the robot
     /// stops (at `stop_decel_mps2`) before its footprint reaches a cell out of the camera's
@@ -508,15 +509,15 @@ impl Mofis {
     /// turn rate nearest its own, among [`GUARD_TURNS`] fractions of the maximum and within
     /// `guard_max_bend` of it, whose arc is clear; else (with `guard_slow`) the same at the
     /// fastest of the [`GUARD_SLOWER`] speeds, where the same bend turns tighter and the reach
-    /// is shorter; else (with `guard_brake`) the freest of those arcs at the full speed's reach, counting only the
-    /// cells out of the camera's view, at the speed that stops short on it (unchanged when
-    /// that arc is clear: what is in view is the stopping gate's); else unchanged. It never slows for what is
-    /// in view alone: braking for every cell, down to a stop, left the robot standing in front
-    /// of lingering phantom cells that nothing could clear (mean mission time 91 → 110–132 s
-    /// on seeds 0..5; docs/missions-history.md). Turning on the spot and backing off pass: a
-    /// round robot turning on the spot touches nothing, and backing off is the stall
-    /// recovery's way out. `arc_free(curvature, reach, aside)` is
-    /// [`memory::ObstacleMemory::arc_free`].
+    /// is shorter; else (with `guard_brake`) the freest of those arcs at the full speed's
+    /// reach, counting only the cells out of the camera's view, at the speed that stops short
+    /// on it (unchanged when that arc is clear: what is in view is the stopping gate's); else
+    /// unchanged. It never slows for what is in view alone: braking for every cell, down to a
+    /// stop, left the robot standing in front of lingering phantom cells that nothing could
+    /// clear (mean mission time 91 → 110–132 s on seeds 0..5; docs/missions-history.md).
+    /// Turning on the spot and backing off pass: a round robot turning on the spot touches
+    /// nothing, and backing off is the stall recovery's way out. `arc_free(curvature, reach,
+    /// aside)` is [`memory::ObstacleMemory::arc_free`].
     fn guard(&self, cmd: BodyVelocity, arc_free: &dyn Fn(f64, f64, bool) -> f64) -> BodyVelocity {
         if cmd.v.is_nan() || cmd.v <= 0.0 {
             return cmd;
