@@ -532,51 +532,57 @@ impl Mofis {
         let mut turns: Vec<f64> =
             GUARD_TURNS.iter().map(|f| f * max_turn).filter(|w| (w - cmd.omega).abs() <= bend).collect();
         turns.sort_by(|a, b| (a - cmd.omega).abs().total_cmp(&(b - cmd.omega).abs()));
-        if let Some(&omega) = turns.iter().find(|&&w| arc_free(w / cmd.v, reach, false) >= reach) {
-            tracing::trace!(
-                target: "flownav::mofis::guard",
-                "bend v={:.2} w={:.2} -> w={omega:.2}: free {free:.2} of {reach:.2} m",
-                cmd.v,
-                cmd.omega
-            );
-            return BodyVelocity { v: cmd.v, omega };
-        }
-        // slower, where the same bend turns tighter and the look-ahead is shorter: the fastest
-        // of the slower speeds with a clear arc within the bend
-        if self.params.guard_slow {
-            for frac in GUARD_SLOWER {
-                let v = cmd.v * frac;
-                let reach = self.guard_reach(v);
-                if let Some(&omega) = turns.iter().find(|&&w| arc_free(w / v, reach, false) >= reach) {
-                    tracing::trace!(
-                        target: "flownav::mofis::guard",
-                        "slow v={:.2} w={:.2} -> v={v:.2} w={omega:.2}: free {free:.2} of {reach:.2} m",
-                        cmd.v,
-                        cmd.omega
-                    );
-                    return BodyVelocity { v, omega };
-                }
+        // the nearest clear turn within the bend at the commanded speed, then (`guard_slow`) at
+        // the fastest slower speed with one: slower, the same bend turns tighter and the
+        // look-ahead is shorter
+        let slower: &[f64] = if self.params.guard_slow { &GUARD_SLOWER } else { &[] };
+        for frac in std::iter::once(1.0).chain(slower.iter().copied()) {
+            let v = cmd.v * frac;
+            let reach_v = self.guard_reach(v);
+            if let Some(&omega) = turns.iter().find(|&&w| arc_free(w / v, reach_v, false) >= reach_v) {
+                tracing::trace!(
+                    target: "flownav::mofis::guard",
+                    "{} v={:.2} w={:.2} -> v={v:.2} w={omega:.2}: free {free:.2} of {reach:.2} m",
+                    if frac == 1.0 { "bend" } else { "slow" },
+                    cmd.v,
+                    cmd.omega
+                );
+                return BodyVelocity { v, omega };
             }
         }
-        if !self.params.guard_brake {
-            tracing::trace!(
-                target: "flownav::mofis::guard",
-                "blocked v={:.2} w={:.2}: free {free:.2} of {reach:.2} m, no clear turn within {bend:.2} rad/s",
-                cmd.v,
-                cmd.omega
-            );
-            return cmd;
+        if self.params.guard_brake
+            && let Some(braked) = self.guard_brake(cmd, &turns, reach, arc_free)
+        {
+            return braked;
         }
-        // brake for the cells out of the camera's view only (what is in view and still there is
-        // seen again and is the stopping gate's): the freest arc within the bend (the
-        // command's own first, then the nearest turns; the first of equals wins), at the speed
-        // from which the robot stops short on it
+        tracing::trace!(
+            target: "flownav::mofis::guard",
+            "blocked v={:.2} w={:.2}: free {free:.2} of {reach:.2} m, no clear turn within {bend:.2} rad/s",
+            cmd.v,
+            cmd.omega
+        );
+        cmd
+    }
+
+    /// The guard's brake (`guard_brake`) for a command `cmd` whose arcs at the candidate turn
+    /// rates `turns` are all blocked within `reach`: counting only the cells out of the
+    /// camera's view (what is in view and still there is seen again, and is the stopping
+    /// gate's), the freest of those arcs (the command's own first, then the nearest turns; the
+    /// first of equals wins), at the speed from which the robot stops short on it; `None`
+    /// when that arc is clear.
+    fn guard_brake(
+        &self,
+        cmd: BodyVelocity,
+        turns: &[f64],
+        reach: f64,
+        arc_free: &dyn Fn(f64, f64, bool) -> f64,
+    ) -> Option<BodyVelocity> {
         let (omega, most) = std::iter::once(cmd.omega)
-            .chain(turns.iter().copied())
+            .chain(turns.iter().copied().filter(|&w| w != cmd.omega))
             .map(|w| (w, arc_free(w / cmd.v, reach, true)))
             .fold((cmd.omega, f64::NEG_INFINITY), |best, (w, f)| if f > best.1 + 1e-9 { (w, f) } else { best });
         if most >= reach {
-            return cmd;
+            return None;
         }
         let v = cmd.v.min(stop_speed(most, self.params.stop_decel_mps2));
         tracing::trace!(
@@ -585,7 +591,7 @@ impl Mofis {
             cmd.v,
             cmd.omega
         );
-        BodyVelocity { v, omega }
+        Some(BodyVelocity { v, omega })
     }
 }
 
