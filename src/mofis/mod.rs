@@ -555,6 +555,17 @@ impl Mofis {
         {
             return braked;
         }
+        // every candidate's free run, beyond the bend too: `turn:free/free out of view`, m
+        if tracing::enabled!(target: "flownav::mofis::arcs", tracing::Level::TRACE) {
+            let arcs: Vec<String> = GUARD_TURNS
+                .iter()
+                .map(|f| f * max_turn)
+                .map(|w| {
+                    format!("{w:.2}:{:.2}/{:.2}", arc_free(w / cmd.v, reach, false), arc_free(w / cmd.v, reach, true))
+                })
+                .collect();
+            tracing::trace!(target: "flownav::mofis::arcs", "v={:.2} reach {reach:.2} m: {}", cmd.v, arcs.join(" "));
+        }
         tracing::trace!(
             target: "flownav::mofis::guard",
             "blocked v={:.2} w={:.2}: free {free:.2} of {reach:.2} m, no clear turn within {bend:.2} rad/s",
