@@ -180,6 +180,15 @@ mod tests {
     }
 
     #[test]
+    fn wide_file_sees_90_degrees_from_the_c310_mount() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../calib/wide90.toml");
+        let wide = Calibration::load(path).unwrap();
+        let half = (wide.camera.width as f64 / 2.0 / wide.camera.fx).atan();
+        assert!((2.0 * half - std::f64::consts::FRAC_PI_2).abs() < 1e-12, "{half}");
+        assert_eq!(wide.mount, Calibration::nominal_c310().mount);
+    }
+
+    #[test]
     fn projection_round_trips_through_ray() {
         let c = Calibration::nominal_c310();
         let p = [0.3, -0.2, 2.5];
