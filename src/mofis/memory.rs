@@ -269,6 +269,12 @@ fn sector(bearing: f64, half_fov: f64) -> Option<usize> {
     (x >= 0.0 && x < SECTORS as f64).then_some(x as usize)
 }
 
+/// The sector of a point (`f` forward, `l` left of the robot, m) in the camera's view, if it is
+/// in view: ahead and within `±half_fov`.
+fn view_sector(f: f64, l: f64, half_fov: f64) -> Option<usize> {
+    if f > 0.0 { sector(l.atan2(f), half_fov) } else { None }
+}
+
 impl ObstacleMemory {
     /// A memory for a camera whose horizontal field of view is `2 · half_fov_rad`, mounted
     /// `camera_height_m` above the floor.
@@ -406,7 +412,7 @@ impl ObstacleMemory {
                 // seen through: the camera measured a surface beyond the cell on its bearing, by a
                 // ray that passes over the cell lower than the top of what is remembered there (a
                 // ray to the far wall above a low box says nothing about the box)
-                let in_view = if f > 0.0 { sector(l.atan2(f), half_fov) } else { None };
+                let in_view = view_sector(f, l, half_fov);
                 let through = in_view.is_some_and(|k| {
                     seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
                 });
@@ -601,7 +607,7 @@ impl ObstacleMemory {
         for (key, _) in self.cells.iter().filter(|(_, c)| c.confirmed && c.evidence >= min_evidence) {
             let [f, l] = self.to_robot(*key);
             let d0 = f.hypot(l);
-            if d0 > near || (aside && f > 0.0 && l.atan2(f).abs() < half_fov) {
+            if d0 > near || (aside && view_sector(f, l, half_fov).is_some()) {
                 continue;
             }
             for k in 1..=steps {
