@@ -8,6 +8,8 @@
 //! Order inside a step (paper Fig. 3): flow (frame pair) → OFFIS (perception) → obstacle memory
 //! → PAFSIS (goal velocity and angle, or a constant cruise goal without a mission) → free-heading
 //! steering → MOFIS (avoidance, fusion, limiter) → set-point.
+//! Before all of it, a frame from a lens with distortion is undistorted to the pinhole frame
+//! with the calibration's K ([`hal::Undistorter`]); a pinhole calibration leaves it untouched.
 //!
 //! **Pairing (keyframes).** Depth from flow needs the camera to have moved: at 30 fps a robot at
 //! 0.1 m/s moves 3 mm between frames, and the flow of a wall 2 m away is a tenth of a pixel,
@@ -32,7 +34,7 @@ use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
 use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
 use crate::perception::{Obstacle, Perception};
-use hal::{BodyVelocity, Calibration, Frame};
+use hal::{BodyVelocity, Calibration, Frame, LumaImage, Undistorter};
 
 #[derive(Debug, thiserror::Error)]
 pub enum StepError {
@@ -46,6 +48,8 @@ pub enum StepError {
         "frame {seq} is not newer than the previous frame (t {t_ns} ns after {prev_ns} ns): timestamps must increase"
     )]
     Time { seq: u64, t_ns: u64, prev_ns: u64 },
+    #[error("cannot undo the lens distortion: {0}")]
+    Undistort(#[from] hal::UndistortError),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -169,6 +173,10 @@ pub struct Pipeline {
     calib: Calibration,
     /// `calib` scaled to the frame size actually received (set on the first frame).
     frame_calib: Option<Calibration>,
+    /// The frame size and the undistorter for it (`None` inside for a pinhole lens), built on
+    /// the first frame of each size; and the buffer it writes into.
+    undistorter: Option<((usize, usize), Option<Undistorter>)>,
+    undistorted: LumaImage,
     flow: Box<dyn FlowEngine>,
     backend: BackendReport,
     offis: Offis,
@@ -206,6 +214,8 @@ impl Pipeline {
         Ok(Self {
             calib,
             frame_calib: None,
+            undistorter: None,
+            undistorted: LumaImage::default(),
             memory,
             points: Vec::new(),
             pairing: cfg.pairing,
@@ -297,17 +307,15 @@ impl Pipeline {
     /// becomes the previous frame so the next pair can succeed.
     pub fn step(&mut self, frame: Frame, odometry: BodyVelocity) -> Result<Option<StepOutput>, StepError> {
         let calib = self.calib_for(&frame);
+        let frame = self.undistort(frame, &calib)?;
         let Some(key) = &mut self.key else {
-            let last_ns = frame.t_ns;
-            self.key =
-                Some(Keyframe { frame, last_ns, travel_m: 0.0, yaw_rad: 0.0, turn_change: 0.0, last_omega: None });
+            self.prime(frame);
             return Ok(None);
         };
         if frame.t_ns <= key.last_ns {
             let err = StepError::Time { seq: frame.seq, t_ns: frame.t_ns, prev_ns: key.last_ns };
             // the frame still becomes the start of the next pair
-            self.key = None;
-            self.step(frame, odometry)?;
+            self.prime(frame);
             return Err(err);
         }
         let prev_t_ns = key.last_ns;
@@ -436,6 +444,27 @@ impl Pipeline {
         Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, steered, mofis }))
     }
 
+    /// The frame becomes the keyframe, with no motion since it.
+    fn prime(&mut self, frame: Frame) {
+        let last_ns = frame.t_ns;
+        self.key = Some(Keyframe { frame, last_ns, travel_m: 0.0, yaw_rad: 0.0, turn_change: 0.0, last_omega: None });
+    }
+
+    /// The frame with its lens distortion undone ([`hal::undistort`]): the pinhole image with the
+    /// calibration's K that the rest of the step assumes. A pinhole calibration (all distortion
+    /// coefficients zero) returns the frame untouched.
+    fn undistort(&mut self, mut frame: Frame, calib: &Calibration) -> Result<Frame, StepError> {
+        let size = (frame.image.width(), frame.image.height());
+        if self.undistorter.as_ref().is_none_or(|(built, _)| *built != size) {
+            self.undistorter = Some((size, Undistorter::new(calib)?));
+        }
+        if let Some((_, Some(undistorter))) = &self.undistorter {
+            undistorter.apply(&frame.image, &mut self.undistorted)?;
+            std::mem::swap(&mut frame.image, &mut self.undistorted);
+        }
+        Ok(frame)
+    }
+
     fn calib_for(&mut self, frame: &Frame) -> Calibration {
         let (w, h) = (frame.image.width() as u32, frame.image.height() as u32);
         match &self.frame_calib {
@@ -461,7 +490,6 @@ impl Pipeline {
 mod tests {
     use super::*;
     use crate::flow::Backend;
-    use hal::LumaImage;
 
     /// A textured frame shifted right by `shift` pixels (deterministic noise, smoothed).
     fn frame(seq: u64, t_ns: u64, shift: usize) -> Frame {

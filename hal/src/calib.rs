@@ -117,6 +117,14 @@ impl Calibration {
         if c.distortion.iter().any(|k| !k.is_finite()) {
             return bad("camera.distortion", "must be finite numbers");
         }
+        if let Err(problem) = crate::undistort::check_model(c) {
+            return bad(
+                "camera.distortion",
+                &format!(
+                    "{problem}: it is not a lens model over the image; recalibrate, or set all five to 0.0 for an ideal pinhole"
+                ),
+            );
+        }
         let m = &self.mount;
         if !(m.x_m.is_finite() && m.y_m.is_finite() && m.z_m.is_finite() && m.z_m > 0.0) {
             return bad("mount", "x_m/y_m must be finite and z_m (height above the floor) positive");
@@ -147,8 +155,8 @@ impl Calibration {
         out
     }
 
-    /// Projects a point in the optical frame (x right, y down, z forward, m) to pixel (u, v),
-    /// ignoring distortion; `None` behind the camera.
+    /// Projects a point in the optical frame (x right, y down, z forward, m) to pixel (u, v) of
+    /// the pinhole (undistorted, [`crate::undistort`]) image; `None` behind the camera.
     pub fn project(&self, p: [f64; 3]) -> Option<[f64; 2]> {
         if p[2] <= 1e-9 {
             return None;
@@ -204,6 +212,12 @@ mod tests {
         assert!(err.to_string().contains("camera.fx/fy"), "{err}");
         let err = Calibration::from_toml("[camera]\nwidth = 3", "y.toml").unwrap_err();
         assert!(err.to_string().contains("y.toml"), "{err}");
+        // k1 = -2 folds the image over before its corners
+        let folded = text.replace("distortion = [0.0,", "distortion = [-2.0,");
+        let err = Calibration::from_toml(&folded, "z.toml").unwrap_err();
+        assert!(err.to_string().contains("camera.distortion") && err.to_string().contains("recalibrate"), "{err}");
+        let mild = text.replace("distortion = [0.0,", "distortion = [-0.05,");
+        assert_eq!(Calibration::from_toml(&mild, "c.toml").unwrap().camera.distortion[0], -0.05);
     }
 
     #[test]

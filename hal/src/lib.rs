@@ -7,6 +7,7 @@
 //! |---|---|
 //! | [`image`] | [`LumaImage`], the 8-bit grey frame every stage works on, and [`Frame`] (image + capture time) |
 //! | [`calib`] | [`Calibration`]: pinhole intrinsics, distortion, and where the camera sits on the robot (`calib/*.toml`) |
+//! | [`undistort`] | the plumb_bob lens model and its inverse, [`Undistorter`]: a distorted frame → the pinhole frame with the same K |
 //! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103) and [`Odometry`] |
 //! | [`error`] | [`ErrorKind`]: what the runtime does about a hardware error (reconnect, stop, skip, report) |
 //! | [`camera`] | the [`Camera`] trait |
@@ -30,6 +31,7 @@ pub mod image;
 pub mod kobuki;
 pub mod mjpeg;
 pub mod motion;
+pub mod undistort;
 pub mod v4l2;
 pub mod yuyv;
 
@@ -39,3 +41,4 @@ pub use camera::Camera;
 pub use error::{Error, ErrorKind};
 pub use image::{Frame, LumaImage};
 pub use motion::{BodyVelocity, Odometry};
+pub use undistort::{UndistortError, Undistorter};

@@ -13,10 +13,21 @@
 //! Depth is the distance along the optical axis (the `z` of the point in the optical frame),
 //! exact up to `f32` rounding: rays are `(x_n, y_n, 1)` in the optical frame, so the ray
 //! parameter of a hit *is* its depth.
+//!
+//! **Lens distortion.** A calibration with non-zero `distortion` (plumb_bob, [`hal::undistort`])
+//! is rendered in two passes: the view is traced as a pinhole image with the same focal length
+//! over the whole field the distorted image sees (wider than the image for barrel distortion),
+//! then each pixel of the distorted image takes the pinhole image at its ray (the undistorted
+//! normalized coordinates of the pixel, computed once): grey values bilinearly, before exposure,
+//! noise and rounding; depth and surface ids from the nearest pinhole pixel, so they describe
+//! what the pixel shows. A pinhole calibration (all coefficients zero) is traced directly, as
+//! before.
 
 use crate::camera::CameraPose;
 use crate::texture::{self, Texture};
 use crate::world::{BoxObstacle, Pose, World, box_corners, cross, mix64};
+use hal::calib::Intrinsics;
+use hal::undistort::{self, undistort_normalized};
 use hal::{Calibration, LumaImage};
 use rayon::prelude::*;
 
@@ -26,6 +37,11 @@ const MAX_SPANS: usize = 24;
 const LIGHT: [f64; 2] = [0.6, 0.8];
 /// Grey value where a ray meets nothing (open sky in scenes without a ceiling).
 const SKY: f32 = 200.0;
+/// The pinhole image of a distorted lens extends this far beyond the field its pixels see, px.
+const LENS_MARGIN_PX: f64 = 2.0;
+/// A distortion whose pinhole image would be this many times the image's width or height is
+/// not rendered (it is not a lens; [`hal::undistort::check_model`] refuses such models).
+const LENS_MAX_GROWTH: f64 = 4.0;
 
 /// What a pixel shows.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -150,6 +166,38 @@ pub struct Renderer {
     surfaces: Vec<Surface>,
     ceiling: Option<f64>,
     tex: &'static Texture,
+    /// Lens distortion to simulate; `None` for a pinhole.
+    lens: Option<Lens>,
+}
+
+/// A lens with distortion: the pinhole view over the field the distorted image sees, and where
+/// each distorted pixel's ray falls in it.
+struct Lens {
+    pinhole: Box<Renderer>,
+    /// Per pixel of the distorted image (row-major): the top-left pinhole pixel of its bilinear
+    /// sample and the weights of the right and lower neighbours.
+    taps: Vec<(u32, f32, f32)>,
+    /// Per pixel of the distorted image: the nearest pinhole pixel.
+    nearest: Vec<u32>,
+}
+
+/// How a traced image is stored: grey levels rounded to `u8`, or the `f32` values themselves.
+trait Grey: Copy + Send + Sync {
+    fn from_value(value: f32) -> Self;
+}
+
+impl Grey for u8 {
+    #[inline]
+    fn from_value(value: f32) -> Self {
+        (value + 0.5).clamp(0.0, 255.0) as u8
+    }
+}
+
+impl Grey for f32 {
+    #[inline]
+    fn from_value(value: f32) -> Self {
+        value
+    }
 }
 
 /// One pixel's hit.
@@ -161,9 +209,18 @@ struct Hit {
 }
 
 impl Renderer {
-    /// Prepares `world` for rendering with `calib` (image size and intrinsics from it; lens
-    /// distortion is not simulated).
+    /// Prepares `world` for rendering with `calib`: image size, intrinsics and lens distortion
+    /// from it. A distortion that is not a lens model over the image
+    /// ([`hal::undistort::check_model`], which `Calibration::load` enforces) is not simulated:
+    /// the view is an ideal pinhole's, with a warning.
     pub fn new(world: &World, calib: &Calibration) -> Self {
+        let mut renderer = Self::pinhole(world, calib);
+        renderer.lens = Lens::new(world, calib);
+        renderer
+    }
+
+    /// The renderer of an ideal pinhole with `calib`'s intrinsics (its distortion ignored).
+    fn pinhole(world: &World, calib: &Calibration) -> Self {
         let c = calib.camera;
         let (width, height) = (c.width as usize, c.height as usize);
         let xn = (0..width).map(|u| (u as f64 - c.cx) / c.fx).collect();
@@ -219,6 +276,7 @@ impl Renderer {
             surfaces,
             ceiling: world.ceiling_height,
             tex: texture::shared(),
+            lens: None,
         }
     }
 
@@ -249,7 +307,7 @@ impl Renderer {
     /// The depth map alone.
     pub fn depth(&self, pose: Pose) -> DepthMap {
         let mut depth = vec![0f32; self.width * self.height];
-        self.trace(pose, None, Some(&mut depth), None);
+        self.trace(pose, None::<&mut [u8]>, Some(&mut depth), None);
         DepthMap { width: self.width, height: self.height, data: depth }
     }
 
@@ -257,7 +315,7 @@ impl Renderer {
     pub fn render_surfaces(&self, pose: Pose) -> (Vec<u32>, DepthMap) {
         let mut ids = vec![0u32; self.width * self.height];
         let mut depth = vec![0f32; self.width * self.height];
-        self.trace(pose, None, Some(&mut depth), Some(&mut ids));
+        self.trace(pose, None::<&mut [u8]>, Some(&mut depth), Some(&mut ids));
         (ids, DepthMap { width: self.width, height: self.height, data: depth })
     }
 
@@ -272,11 +330,18 @@ impl Renderer {
             self.trace(pose, Some(out.data_mut()), None, None);
             return;
         }
-        let mut acc = vec![0f32; self.width * self.height];
+        // a distorted lens: the pinhole view is accumulated, then warped
+        let traced = self.lens.as_ref().map_or(self, |lens| &*lens.pinhole);
+        let mut acc = vec![0f32; traced.width * traced.height];
         for k in 0..n {
             let f = if n == 1 { 1.0 } else { k as f64 / (n - 1) as f64 };
             let p = from.lerp(&pose, f);
-            self.trace_values(p, &mut acc, k > 0);
+            traced.trace_values(p, &mut acc, k > 0);
+        }
+        if let Some(lens) = &self.lens {
+            let mut warped = vec![0f32; self.width * self.height];
+            lens.bilinear(&acc, &mut warped, self.width);
+            acc = warped;
         }
         let (gain, offset, sigma) = (effects.gain as f32 / n as f32, effects.offset as f32, effects.noise_sigma as f32);
         let seed = mix64(effects.seed ^ mix64(seq.wrapping_add(0x5EED)));
@@ -306,12 +371,16 @@ impl Renderer {
     }
 
     /// The core: fills whichever outputs are given.
-    fn trace(&self, pose: Pose, img: Option<&mut [u8]>, depth: Option<&mut [f32]>, ids: Option<&mut [u32]>) {
+    fn trace<G: Grey>(&self, pose: Pose, img: Option<&mut [G]>, depth: Option<&mut [f32]>, ids: Option<&mut [u32]>) {
+        if let Some(lens) = &self.lens {
+            lens.trace(pose, self.width, img, depth, ids);
+            return;
+        }
         let cam = CameraPose::of_robot(pose, &self.calib);
         let spans = self.column_spans(&cam);
         let w = self.width;
         let rows = self.height;
-        let img_rows: Vec<Option<&mut [u8]>> = match img {
+        let img_rows: Vec<Option<&mut [G]>> = match img {
             Some(i) => i.chunks_mut(w).map(Some).collect(),
             None => (0..rows).map(|_| None).collect(),
         };
@@ -328,7 +397,7 @@ impl Renderer {
                 for u in 0..w {
                     let h = self.pixel(&cam, &spans, u, v);
                     if let Some(r) = img.as_deref_mut() {
-                        r[u] = (h.value + 0.5).clamp(0.0, 255.0) as u8;
+                        r[u] = G::from_value(h.value);
                     }
                     if let Some(r) = depth.as_deref_mut() {
                         r[u] = h.depth as f32;
@@ -589,6 +658,121 @@ impl Renderer {
     }
 }
 
+impl Lens {
+    /// The lens of `calib`, `None` for a pinhole or a distortion that is not a lens model.
+    fn new(world: &World, calib: &Calibration) -> Option<Self> {
+        let c = calib.camera;
+        if undistort::is_identity(&c.distortion) {
+            return None;
+        }
+        let refuse = |problem: String| {
+            tracing::warn!("camera.distortion {:?} {problem}: rendering an ideal pinhole", c.distortion);
+            None
+        };
+        if let Err(problem) = undistort::check_model(&c) {
+            return refuse(problem);
+        }
+        let (width, height) = (c.width as usize, c.height as usize);
+        if width < 2 || height < 2 {
+            return refuse(format!("on a {width}x{height} image"));
+        }
+        // each pixel's ray: the ideal (pinhole) normalized point the lens put there
+        let rays: Option<Vec<[f64; 2]>> = (0..width * height)
+            .into_par_iter()
+            .map(|i| {
+                let (u, v) = ((i % width) as f64, (i / width) as f64);
+                undistort_normalized(&c.distortion, [(u - c.cx) / c.fx, (v - c.cy) / c.fy])
+            })
+            .collect();
+        let Some(rays) = rays else {
+            return refuse("cannot be inverted at every pixel".into());
+        };
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for r in &rays {
+            for k in 0..2 {
+                lo[k] = lo[k].min(r[k]);
+                hi[k] = hi[k].max(r[k]);
+            }
+        }
+        // the pinhole image: same focal lengths, spanning the rays with a margin
+        let cx = -lo[0] * c.fx + LENS_MARGIN_PX;
+        let cy = -lo[1] * c.fy + LENS_MARGIN_PX;
+        let inner_w = ((hi[0] - lo[0]) * c.fx + 2.0 * LENS_MARGIN_PX).ceil() + 1.0;
+        let inner_h = ((hi[1] - lo[1]) * c.fy + 2.0 * LENS_MARGIN_PX).ceil() + 1.0;
+        if inner_w > LENS_MAX_GROWTH * width as f64 || inner_h > LENS_MAX_GROWTH * height as f64 {
+            return refuse(format!("needs a {inner_w}x{inner_h} pinhole view"));
+        }
+        let (inner_w, inner_h) = (inner_w as usize, inner_h as usize);
+        let mut inner = calib.clone();
+        inner.camera = Intrinsics {
+            width: inner_w as u32,
+            height: inner_h as u32,
+            fx: c.fx,
+            fy: c.fy,
+            cx,
+            cy,
+            distortion: [0.0; 5],
+        };
+        let at = |r: &[f64; 2]| {
+            [(c.fx * r[0] + cx).clamp(0.0, (inner_w - 1) as f64), (c.fy * r[1] + cy).clamp(0.0, (inner_h - 1) as f64)]
+        };
+        let taps = rays
+            .iter()
+            .map(|r| {
+                let [x, y] = at(r);
+                let (x0, y0) = ((x.floor() as usize).min(inner_w - 2), (y.floor() as usize).min(inner_h - 2));
+                ((y0 * inner_w + x0) as u32, (x - x0 as f64) as f32, (y - y0 as f64) as f32)
+            })
+            .collect();
+        let nearest = rays
+            .iter()
+            .map(|r| {
+                let [x, y] = at(r);
+                (y.round() as usize * inner_w + x.round() as usize) as u32
+            })
+            .collect();
+        Some(Self { pinhole: Box::new(Renderer::pinhole(world, &inner)), taps, nearest })
+    }
+
+    /// Traces the pinhole view and warps whichever outputs are given (rows of `width` pixels).
+    fn trace<G: Grey>(
+        &self,
+        pose: Pose,
+        width: usize,
+        img: Option<&mut [G]>,
+        depth: Option<&mut [f32]>,
+        ids: Option<&mut [u32]>,
+    ) {
+        let n = self.pinhole.width * self.pinhole.height;
+        let mut values = img.as_ref().map(|_| vec![0f32; n]);
+        let mut inner_depth = depth.as_ref().map(|_| vec![0f32; n]);
+        let mut inner_ids = ids.as_ref().map(|_| vec![0u32; n]);
+        self.pinhole.trace(pose, values.as_deref_mut(), inner_depth.as_deref_mut(), inner_ids.as_deref_mut());
+        if let (Some(out), Some(values)) = (img, &values) {
+            self.bilinear(values, out, width);
+        }
+        if let (Some(out), Some(inner)) = (depth, &inner_depth) {
+            out.par_iter_mut().zip(&self.nearest).for_each(|(d, &i)| *d = inner[i as usize]);
+        }
+        if let (Some(out), Some(inner)) = (ids, &inner_ids) {
+            out.par_iter_mut().zip(&self.nearest).for_each(|(d, &i)| *d = inner[i as usize]);
+        }
+    }
+
+    /// Bilinear samples of the pinhole image's `values` at each distorted pixel's ray.
+    fn bilinear<G: Grey>(&self, values: &[f32], out: &mut [G], width: usize) {
+        let w = self.pinhole.width;
+        out.par_chunks_mut(width).zip(self.taps.par_chunks(width)).for_each(|(row, taps)| {
+            for (o, &(i, fx, fy)) in row.iter_mut().zip(taps) {
+                let i = i as usize;
+                let top = values[i] + fx * (values[i + 1] - values[i]);
+                let bottom = values[i + w] + fx * (values[i + w + 1] - values[i + w]);
+                *o = G::from_value(top + fy * (bottom - top));
+            }
+        });
+    }
+}
+
 enum ColumnData {
     Level { spans: Vec<Span>, counts: Vec<u8> },
     Pitched { candidates: Vec<Vec<u32>> },
@@ -687,6 +871,63 @@ mod tests {
         let n = a.data().len() as f64;
         let var = a.data().iter().zip(clean.data()).map(|(x, y)| (*x as f64 - *y as f64).powi(2)).sum::<f64>() / n;
         assert!((var.sqrt() - 3.0).abs() < 0.3, "{}", var.sqrt());
+    }
+
+    /// The 90° lens of `calib/wide90.toml` with barrel distortion, at 320×180.
+    fn distorted_wide() -> Calibration {
+        let mut calib = Calibration::nominal_c310();
+        calib.camera.fx = 640.0;
+        calib.camera.fy = 640.0;
+        calib.camera.distortion = [-0.25, 0.06, 0.0005, -0.0003, 0.0];
+        calib.scaled_to(320, 180)
+    }
+
+    #[test]
+    fn only_a_distorted_lens_takes_the_two_pass_path() {
+        let w = World::office();
+        assert!(Renderer::new(&w, &small()).lens.is_none());
+        let r = Renderer::new(&w, &distorted_wide());
+        let inner = &r.lens.as_ref().unwrap().pinhole;
+        // barrel distortion: the pinhole view of the same field is larger than the image
+        assert!(inner.width > 320 && inner.height > 180, "{}x{}", inner.width, inner.height);
+        let folded = Calibration {
+            camera: Intrinsics { distortion: [-2.0, 0.0, 0.0, 0.0, 0.0], ..distorted_wide().camera },
+            ..small()
+        };
+        assert!(Renderer::new(&w, &folded).lens.is_none(), "not a lens: rendered as a pinhole");
+    }
+
+    #[test]
+    fn distorted_floor_depth_follows_the_lens_model() {
+        // pixel (u, v) sees the floor along its ideal ray (x, y, 1): depth = height / y
+        let calib = distorted_wide();
+        let sc = scene::empty();
+        let (ids, d) = Renderer::new(&sc.world, &calib).render_surfaces(sc.start(&calib));
+        let c = calib.camera;
+        for (u, v) in [(0usize, 179usize), (10, 150), (160, 170), (300, 120), (319, 100)] {
+            let [_, y] =
+                undistort_normalized(&c.distortion, [(u as f64 - c.cx) / c.fx, (v as f64 - c.cy) / c.fy]).unwrap();
+            let expect = calib.mount.z_m / y;
+            // the nearest pinhole pixel's ray is within half a pixel of this one's
+            let tolerance = 0.5 / (c.fy * y) * expect;
+            assert!((d.at(u, v) as f64 - expect).abs() <= tolerance, "({u},{v}) {} vs {expect}", d.at(u, v));
+            assert_eq!(ids[v * 320 + u], 0, "({u},{v}) is floor");
+        }
+        assert!(d.at(160, 10).is_infinite());
+    }
+
+    #[test]
+    fn distorted_frames_warp_before_the_effects() {
+        // two identical blur samples at half gain each: the effects path equals the clean render
+        let calib = distorted_wide();
+        let w = World::office();
+        let r = Renderer::new(&w, &calib);
+        let mut blurred = LumaImage::default();
+        r.render_frame(w.start, w.start, &Effects { blur_samples: 2, ..Effects::default() }, 0, &mut blurred);
+        let clean = r.render(w.start);
+        let worst = clean.data().iter().zip(blurred.data()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+        assert!(worst <= 1, "{worst}");
+        assert_eq!(r.render_with_depth(w.start).0, clean);
     }
 
     #[test]
