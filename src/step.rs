@@ -365,6 +365,7 @@ impl Pipeline {
             Navigator::Cruise(_) => None,
         };
         let stop_ahead = stop_ahead.unwrap_or(f64::INFINITY);
+        self.memory.set_stop(stop_ahead);
         let horizon = self.memory.horizon(stop_ahead);
         // the nearest threat, and the nearest on the other side of the heading: MOFIS avoids both
         let (avoided, other) = crate::mofis::memory::nearer(self.memory.threat_sides(stop_ahead));

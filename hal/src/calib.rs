@@ -197,6 +197,19 @@ mod tests {
     }
 
     #[test]
+    fn c920_file_sees_70_degrees_across_78_diagonally_from_the_c310_mount() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../calib/c920.toml");
+        let c = Calibration::load(path).unwrap();
+        let (w, h, f) = (c.camera.width as f64, c.camera.height as f64, c.camera.fx);
+        let diagonal = 2.0 * (w.hypot(h) / 2.0 / f).atan();
+        assert!((diagonal.to_degrees() - 78.0).abs() < 0.01, "{}", diagonal.to_degrees());
+        let across = 2.0 * (w / 2.0 / f).atan();
+        assert!((across.to_degrees() - 70.4).abs() < 0.05, "{}", across.to_degrees());
+        assert_eq!(c.camera.fy, f);
+        assert_eq!(c.mount, Calibration::nominal_c310().mount);
+    }
+
+    #[test]
     fn projection_round_trips_through_ray() {
         let c = Calibration::nominal_c310();
         let p = [0.3, -0.2, 2.5];

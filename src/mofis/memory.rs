@@ -232,6 +232,8 @@ pub struct ObstacleMemory {
     seen: Vec<Vec<(f64, f64)>>,
     /// The corridor the robot is in, from the map ([`set_lane`](Self::set_lane)).
     lane: Option<Lane>,
+    /// How far ahead the plan stops the robot's origin, m ([`set_stop`](Self::set_stop)).
+    stop_m: f64,
 }
 
 /// One grid cell: its evidence, and the top of what was seen in it.
@@ -288,6 +290,7 @@ impl ObstacleMemory {
             touched: Vec::new(),
             seen: Vec::new(),
             lane: None,
+            stop_m: f64::INFINITY,
         }
     }
 
@@ -347,6 +350,16 @@ impl ObstacleMemory {
     /// queries.
     pub fn set_lane(&mut self, lane: Option<Lane>) {
         self.lane = lane;
+    }
+
+    /// How far ahead the plan stops the robot's origin (before a turn, at the goal), m;
+    /// infinite when it does not. The paths of [`free_width`](Self::free_width) and its callers
+    /// end there, rounded by their half-width: a cell past the stop point and farther than the
+    /// half-width from it is beside where the robot will stand, not in its way (the jambs of the
+    /// door the robot stops 0.5 m in front of, 0.35 m to either side, read as in its path and
+    /// held it creeping short of the goal). Set each step before the queries.
+    pub fn set_stop(&mut self, reach_m: f64) {
+        self.stop_m = if reach_m.is_nan() { f64::INFINITY } else { reach_m.max(0.0) };
     }
 
     /// Cells with at least `min_evidence`, robot frame (forward, left), m, with their evidence
@@ -479,8 +492,8 @@ impl ObstacleMemory {
     }
 
     /// [`threat`](Self::threat) for a robot that will stop before its origin has driven
-    /// `reach_m` further: cells in the path beyond `reach_m + robot_radius_m + path_margin_m`
-    /// ahead are not in its way.
+    /// `reach_m` further: its path ends in a half-disc of radius `robot_radius_m +
+    /// path_margin_m` around the stop point, and what lies beyond it is not in its way.
     ///
     /// Cells ahead of the robot's origin count within the path (`robot_radius_m +
     /// path_margin_m` of the heading line) at their distance, and in a side band beyond it
@@ -510,7 +523,10 @@ impl ObstacleMemory {
             }
             // the side band narrows to nothing at SIDE_REACH_M ahead: far cells count only in
             // the path, as before, and a cell fades out continuously wherever it leaves the band
-            let beyond = across.abs() - path;
+            // past the stop point the path ends in a half-disc: the distance to the swept
+            // segment, not the distance across it
+            let past = (along - reach_m).max(0.0);
+            let beyond = past.hypot(across) - path;
             let band = p.side_margin_m * (1.0 - along / SIDE_REACH_M).max(0.0);
             let fade = match beyond <= 0.0 {
                 true => 0.0,
@@ -631,14 +647,20 @@ impl ObstacleMemory {
 
     /// How far a band `half` wide (m) either side of `heading` (rad, robot frame) is free of
     /// occupied cells ahead of the robot's origin, up to `lookahead_m`; measured from the origin.
+    /// Past the stop ([`set_stop`](Self::set_stop)) the band ends in a half-disc of radius
+    /// `half` around the point where it crosses the stop line (across the current heading).
     pub fn free_width(&self, heading: f64, half: f64, lookahead_m: f64) -> f64 {
         let p = &self.params;
         let (s, c) = heading.sin_cos();
         let mut free = lookahead_m;
+        // the stop is a line across the current heading: a path turned by `heading` meets it
+        // 1 / cos(heading) farther (and a path turned by a right angle or more never)
+        let stop = if c > 0.05 { self.stop_m / c } else { f64::INFINITY };
         for ([f, l], banded) in self.banded_cells() {
             let along = f * c + l * s;
             let across = (-f * s + l * c).abs();
-            if across <= half && along > -p.behind_m && !banded {
+            let past = (along - stop).max(0.0);
+            if across <= half && past.hypot(across) <= half && along > -p.behind_m && !banded {
                 free = free.min(along.max(0.0));
             }
         }
@@ -1033,6 +1055,40 @@ mod tests {
         assert!(!m.threat_within(0.3).present, "1.0 m ahead is beyond 0.3 + 0.38 m");
         let o = m.threat_within(0.7);
         assert!(o.present && (o.distance_m.unwrap() - (1.0f64.hypot(0.05) - 0.18)).abs() < 0.08, "{o:?}");
+    }
+
+    #[test]
+    fn the_path_ends_in_a_half_disc_at_the_stop() {
+        // a door's jambs as the memory places them, cell centres 0.65 m ahead and 0.35 m to
+        // either side, and a robot that stops 0.3 m on: 0.49 m from where it will stand,
+        // beyond its 0.38 m half-width, but inside the square end the path had before
+        let mut m = memory();
+        put(&mut m, 0.62, 0.35, 2.0, true);
+        put(&mut m, 0.62, -0.35, 2.0, true);
+        assert!(m.threat_within(0.3).present);
+        assert!((m.free_distance(0.0, 1.0) - 0.65).abs() < 1e-9);
+        m.set_stop(0.3);
+        // (the test memory's wide side band still has them, faded out to far)
+        let beside = m.threat_within(0.3);
+        assert!(beside.distance_m.is_none_or(|d| d > 2.5), "{beside:?}");
+        assert_eq!(m.free_distance(0.0, 1.0), 1.0);
+        // a path turned by a right angle never reaches the stop line: a cell 0.9 m to the left
+        // blocks it as before
+        put(&mut m, 0.02, 0.92, 2.0, true);
+        assert!(
+            (m.free_distance(std::f64::consts::FRAC_PI_2, 1.0) - 0.95).abs() < 1e-6,
+            "{}",
+            m.free_distance(std::f64::consts::FRAC_PI_2, 1.0)
+        );
+        // a cell 0.35 m past the stop point and 0.05 m aside is where the robot will stand
+        put(&mut m, 0.62, 0.05, 2.0, true);
+        let o = m.threat_within(0.3);
+        assert!(o.present && (o.distance_m.unwrap() - (0.65f64.hypot(0.05) - 0.18)).abs() < 1e-6, "{o:?}");
+        assert!((m.free_distance(0.0, 1.0) - 0.65).abs() < 1e-9);
+        // no stop: the jambs block the path again
+        m.cells.remove(&m.cell_at(0.62, 0.05));
+        m.set_stop(f64::INFINITY);
+        assert!((m.free_distance(0.0, 1.0) - 0.65).abs() < 1e-9);
     }
 
     #[test]
