@@ -660,7 +660,8 @@ impl ObstacleMemory {
             let along = f * c + l * s;
             let across = (-f * s + l * c).abs();
             let past = (along - stop).max(0.0);
-            if across <= half && past.hypot(across) <= half && along > -p.behind_m && !banded {
+            // within `half` of the path: across it, or past the stop within `half` of its end
+            if past.hypot(across) <= half && along > -p.behind_m && !banded {
                 free = free.min(along.max(0.0));
             }
         }
