@@ -359,6 +359,7 @@ impl Pipeline {
         self.memory.update(odometry, frame_dt, &self.points, measured);
         // the corridor from the map: for the memory's queries, the escape and the steering
         self.memory.set_lane(self.pafsis().and_then(Pafsis::lane));
+        self.memory.set_doorway(self.pafsis().and_then(Pafsis::doorway));
         // where the plan stops the robot (before a turn, at the goal): nothing beyond is in its way
         let stop_ahead = match &self.navigator {
             Navigator::Mission(pafsis) => pafsis.stop_ahead_m(),
@@ -429,8 +430,10 @@ impl Pipeline {
         // the stopping gate: never faster than the robot can stop short of what is in its way
         let (margin, decel) = self.stop_gate;
         let in_way = self.memory.free_width(0.0, mp.robot_radius_m + margin, STOP_LOOKAHEAD_M);
-        let ahead =
-            Ahead { front_m: front.max(0.0), stop_speed_mps: stop_speed(in_way - mp.robot_radius_m - margin, decel) };
+        // and short of the door's wall, from the map, when going through a door
+        let door = self.memory.door_free_ahead(STOP_LOOKAHEAD_M);
+        let stop_speed_mps = stop_speed(in_way - mp.robot_radius_m - margin, decel).min(stop_speed(door, decel));
+        let ahead = Ahead { front_m: front.max(0.0), stop_speed_mps };
         let view = Perception { obstacle: avoided, ..perception.clone() };
         // the footprint guard: the arcs against every remembered cell, faded ones included
         let (memory, guard) = (&self.memory, self.guard);

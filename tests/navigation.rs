@@ -206,6 +206,36 @@ fn the_corridor_lane_comes_from_the_map_width_and_dead_reckoning() {
     assert!((lane.angle_rad - (a0 - 0.2)).abs() < 1e-9, "{lane:?}");
 }
 
+#[test]
+fn the_door_of_a_doorway_leg_comes_from_the_map_opening_and_dead_reckoning() {
+    let map = office();
+    let mut nav = mission(&map, "R9:D2");
+    let none = Perception::default();
+    // in R9 at (21, -3) facing north: D9's opening (0.9 m, its wall 2 m along the 2.5 m exit)
+    // is 2 m straight ahead
+    let door = nav.doorway().expect("exit_room with width_m and door_at_m");
+    assert!((door.centre_m[0] - 2.0).abs() < 1e-9 && door.centre_m[1].abs() < 1e-9, "{door:?}");
+    assert!(door.angle_rad.abs() < 1e-12 && (door.half_width_m - 0.45).abs() < 1e-12, "{door:?}");
+    // turned 0.3 rad left and driven 0.5 m that way: the door is right of ahead, turned right
+    nav.step(&none, BodyVelocity::new(0.0, 0.3), 1.0);
+    nav.step(&none, BodyVelocity::new(0.5, 0.0), 1.0);
+    let door = nav.doorway().unwrap();
+    let (x, y) = (21.0 - 0.5 * 0.3f64.sin(), -3.0 + 0.5 * 0.3f64.cos());
+    let (dx, dy) = (21.0 - x, -1.0 - y);
+    let (s, c) = (std::f64::consts::FRAC_PI_2 + 0.3).sin_cos();
+    assert!((door.centre_m[0] - (c * dx + s * dy)).abs() < 1e-6, "{door:?}");
+    assert!((door.centre_m[1] - (-s * dx + c * dy)).abs() < 1e-6, "{door:?}");
+    assert!((door.angle_rad + 0.3).abs() < 1e-9, "{door:?}");
+    // past the doorway leg (the turn into the corridor) there is none
+    while nav.progress().leg < 1 {
+        nav.step(&none, BodyVelocity::new(0.2, 0.0), 0.1);
+    }
+    assert_eq!(nav.doorway(), None);
+    // nor where the map gives no opening
+    let plain = TopoMap::parse(&flownav::sim::OFFICE_MAP_TOML.replace(", width_m = 0.9, door_at_m = 2.0", ""), "plain").unwrap();
+    assert_eq!(mission(&plain, "R9:D2").doorway(), None);
+}
+
 /// R9:D2 with scripted odometry: out of R9 onto the corridor's centre line, a swerve 0.5 m
 /// south, the corridor leg run out there, and the turn to face D2; returns at the last leg.
 fn swerved_to_the_last_leg(params: PafsisParams) -> Pafsis {

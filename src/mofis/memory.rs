@@ -37,7 +37,7 @@
 //! outputs in the same order (replay is bit-exact).
 
 use crate::offis::points::SurfacePoint;
-use crate::pafsis::Lane;
+use crate::pafsis::{Doorway, Lane};
 use crate::perception::Obstacle;
 use hal::BodyVelocity;
 use serde::{Deserialize, Serialize};
@@ -232,6 +232,8 @@ pub struct ObstacleMemory {
     seen: Vec<Vec<(f64, f64)>>,
     /// The corridor the robot is in, from the map ([`set_lane`](Self::set_lane)).
     lane: Option<Lane>,
+    /// The door the robot is going through, from the map ([`set_doorway`](Self::set_doorway)).
+    doorway: Option<Doorway>,
     /// How far ahead the plan stops the robot's origin, m ([`set_stop`](Self::set_stop)).
     stop_m: f64,
 }
@@ -290,6 +292,7 @@ impl ObstacleMemory {
             touched: Vec::new(),
             seen: Vec::new(),
             lane: None,
+            doorway: None,
             stop_m: f64::INFINITY,
         }
     }
@@ -350,6 +353,57 @@ impl ObstacleMemory {
     /// queries.
     pub fn set_lane(&mut self, lane: Option<Lane>) {
         self.lane = lane;
+    }
+
+    /// The door the robot is going through now, from the map (`None`: none, or no map): the
+    /// steering, the escape ([`free_in_lane`](Self::free_in_lane)) and the footprint guard
+    /// ([`arc_free`](Self::arc_free)) keep the robot's footprint, widened by `lane_margin_m`,
+    /// off the door's wall either side of the opening. The camera does not see a jamb beside
+    /// the robot, nor one it approaches at an angle, in time (a jamb of R9's door was the
+    /// wide views' contacts). Set each step before the queries.
+    pub fn set_doorway(&mut self, doorway: Option<Doorway>) {
+        self.doorway = doorway;
+    }
+
+    /// How far the robot's origin at `p` (robot frame, m) is from the door's wall either side
+    /// of the opening ([`set_doorway`](Self::set_doorway)); infinite without a door.
+    fn door_wall_distance(&self, [f, l]: [f64; 2]) -> f64 {
+        let Some(door) = &self.doorway else { return f64::INFINITY };
+        let (s, c) = door.angle_rad.sin_cos();
+        let (df, dl) = (f - door.centre_m[0], l - door.centre_m[1]);
+        // along the way through the door (0 at its wall) and across it
+        let (along, across) = (df * c + dl * s, (-df * s + dl * c).abs());
+        match across >= door.half_width_m {
+            true => along.abs(),
+            false => along.hypot(door.half_width_m - across),
+        }
+    }
+
+    /// How far the robot can drive along a path `at(s)` (its origin after `s` m, robot frame)
+    /// before its footprint, widened by `lane_margin_m`, meets the door's wall, in steps of
+    /// [`ARC_STEP_M`] up to `reach_m`. A robot already that near is free to drive away from it.
+    fn door_free(&self, reach_m: f64, at: impl Fn(f64) -> [f64; 2]) -> f64 {
+        if self.doorway.is_none() || reach_m.is_nan() || reach_m <= 0.0 {
+            return reach_m.max(0.0);
+        }
+        let body = self.params.robot_radius_m + self.params.lane_margin_m;
+        let d0 = self.door_wall_distance([0.0, 0.0]);
+        let steps = (reach_m / ARC_STEP_M).ceil().max(1.0) as usize;
+        for k in 1..=steps {
+            let s = reach_m * k as f64 / steps as f64;
+            let d = self.door_wall_distance(at(s));
+            if d < body && d < d0 - 1e-3 {
+                return reach_m * (k - 1) as f64 / steps as f64;
+            }
+        }
+        reach_m
+    }
+
+    /// How far the robot can drive straight ahead before its footprint, widened by
+    /// `lane_margin_m`, meets the door's wall ([`set_doorway`](Self::set_doorway)), up to
+    /// `lookahead_m`: for the stopping gate.
+    pub fn door_free_ahead(&self, lookahead_m: f64) -> f64 {
+        self.door_free(lookahead_m, |d| [d, 0.0])
     }
 
     /// How far ahead the plan stops the robot's origin (before a turn, at the goal), m;
@@ -619,7 +673,12 @@ impl ObstacleMemory {
         let body = self.params.robot_radius_m + clearance_m;
         let near = reach_m + body;
         let steps = (reach_m / ARC_STEP_M).ceil().max(1.0) as usize;
-        let mut free = reach_m;
+        let arc = |s: f64| match curvature.abs() < 1e-6 {
+            true => [s, 0.0],
+            false => [(curvature * s).sin() / curvature, (1.0 - (curvature * s).cos()) / curvature],
+        };
+        // the door's wall, from the map, counts wherever it is
+        let mut free = self.door_free(reach_m, arc);
         for (key, _) in self.cells.iter().filter(|(_, c)| c.confirmed && c.evidence >= min_evidence) {
             let [f, l] = self.to_robot(*key);
             let d0 = f.hypot(l);
@@ -631,10 +690,7 @@ impl ObstacleMemory {
                 if s >= free {
                     break;
                 }
-                let (x, y) = match curvature.abs() < 1e-6 {
-                    true => (s, 0.0),
-                    false => ((curvature * s).sin() / curvature, (1.0 - (curvature * s).cos()) / curvature),
-                };
+                let [x, y] = arc(s);
                 let d = (f - x).hypot(l - y);
                 if d < body && d < d0 - 1e-3 {
                     free = free.min(reach_m * (k - 1) as f64 / steps as f64);
@@ -687,7 +743,9 @@ impl ObstacleMemory {
     /// ([`set_lane`](Self::set_lane)), inside it ([`lane_free_distance`](Self::lane_free_distance)).
     pub fn free_in_lane(&self, heading: f64, lookahead_m: f64) -> f64 {
         let seen = self.free_distance(heading, lookahead_m);
-        self.lane.as_ref().map_or(seen, |l| seen.min(self.lane_free_distance(l, heading, lookahead_m)))
+        let seen = self.lane.as_ref().map_or(seen, |l| seen.min(self.lane_free_distance(l, heading, lookahead_m)));
+        let (s, c) = heading.sin_cos();
+        seen.min(self.door_free(lookahead_m, |d| [d * c, d * s]))
     }
 
     /// The heading to drive instead of `goal_rad` (both rad, robot frame): `goal_rad` itself when
@@ -1245,6 +1303,38 @@ mod tests {
         assert!(wide.threat_sides(f64::INFINITY)[0].present);
         m.set_lane(lane(0.25, 0.0));
         assert!(!m.threat_sides(f64::INFINITY)[0].present);
+    }
+
+    #[test]
+    fn the_doors_wall_from_the_map_bounds_the_steering_the_guard_and_the_stop() {
+        use crate::pafsis::Doorway;
+        let mut m = memory();
+        let (body, step) = (m.params.robot_radius_m + m.params.lane_margin_m, ARC_STEP_M);
+        // no door: nothing bounds the path
+        assert_eq!(m.free_in_lane(0.0, 1.5), 1.5);
+        // a 0.9 m opening 1 m ahead, the robot on its axis: straight through is free
+        m.set_doorway(Some(Doorway { centre_m: [1.0, 0.0], angle_rad: 0.0, half_width_m: 0.45 }));
+        assert_eq!(m.free_in_lane(0.0, 1.5), 1.5);
+        assert_eq!(m.door_free_ahead(1.5), 1.5);
+        assert_eq!(m.arc_free(0.0, 1.5, 0.04, 0.3, false), 1.5);
+        // 0.35 m left of the axis: the footprint meets the left jamb's edge, 0.1 m beside the
+        // path, sqrt(body² − 0.1²) before the wall
+        m.set_doorway(Some(Doorway { centre_m: [1.0, -0.35], angle_rad: 0.0, half_width_m: 0.45 }));
+        let jamb = 1.0 - (body * body - 0.1f64 * 0.1).sqrt();
+        for free in [m.free_in_lane(0.0, 1.5), m.door_free_ahead(1.5), m.arc_free(0.0, 1.5, 0.04, 0.3, false)] {
+            assert!(free <= jamb && free > jamb - step - 1e-9, "{free} vs {jamb}");
+        }
+        // the steering turns toward the opening's middle
+        let h = m.steer(0.0, 1.5, 0.7, 0.05);
+        assert!(h < 0.0 && m.free_in_lane(h, 1.5) == 1.5, "{h}");
+        // a wall straight ahead (the robot 1 m beside the opening): the footprint meets it
+        m.set_doorway(Some(Doorway { centre_m: [1.0, 1.0], angle_rad: 0.0, half_width_m: 0.45 }));
+        assert!((m.door_free_ahead(1.5) - (1.0 - body)).abs() <= step + 1e-9);
+        // in the doorway beside a jamb, nearer than the footprint: free to drive on through,
+        // not to turn into it
+        m.set_doorway(Some(Doorway { centre_m: [0.0, -0.3], angle_rad: 0.0, half_width_m: 0.45 }));
+        assert_eq!(m.free_in_lane(0.0, 1.0), 1.0);
+        assert!(m.free_in_lane(0.5, 1.0) < 0.2);
     }
 
     #[test]

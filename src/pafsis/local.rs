@@ -86,6 +86,9 @@ pub struct Leg {
     pub line_point_m: Option<[f64; 2]>,
     /// Width of the corridor around that line, m, when the map gives it (corridor legs).
     pub lane_width_m: Option<f64>,
+    /// A doorway leg's door where the map gives it: the opening's centre in the map frame
+    /// (on the leg's line, [`Action::opening`]'s distance before its end) and its width, m.
+    pub door_m: Option<([f64; 2], f64)>,
 }
 
 impl fmt::Display for Leg {
@@ -136,6 +139,7 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                 leads_to: edge.to.clone(),
                 line_point_m: None,
                 lane_width_m: None,
+                door_m: None,
             });
             turned = true;
         }
@@ -147,12 +151,24 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                 leads_to: edge.to.clone(),
                 line_point_m: point,
                 lane_width_m: None,
+                door_m: None,
             };
             match action {
-                Action::ExitRoom { door, length_m }
-                | Action::EnterRoom { door, length_m }
-                | Action::GoThroughDoor { door, length_m } => {
-                    legs.push(leg(LegKind::Doorway { door: door.clone(), length_m: *length_m }, heading));
+                Action::ExitRoom { door, length_m, .. }
+                | Action::EnterRoom { door, length_m, .. }
+                | Action::GoThroughDoor { door, length_m, .. } => {
+                    // the door, placed back from the edge's end: for the edge's last action
+                    let last = std::ptr::eq(action, edge.actions.last().unwrap_or(action));
+                    let door_m = match (action.opening(), point, last) {
+                        (Some((width, before)), Some([x, y]), true) => {
+                            Some(([x - before * heading.cos(), y - before * heading.sin()], width))
+                        }
+                        _ => None,
+                    };
+                    legs.push(Leg {
+                        door_m,
+                        ..leg(LegKind::Doorway { door: door.clone(), length_m: *length_m }, heading)
+                    });
                     turned = false;
                 }
                 Action::Turn { .. } => {
@@ -279,6 +295,21 @@ pub struct Lane {
     /// + left.
     pub angle_rad: f64,
     /// Half the corridor's width, m.
+    pub half_width_m: f64,
+}
+
+/// The door the robot is going through, in the robot's frame, from the map's opening
+/// ([`crate::pafsis::map::Action::opening`]) and the dead-reckoned pose: the steering keeps the
+/// robot's footprint off the wall either side of it
+/// ([`crate::mofis::memory::ObstacleMemory::set_doorway`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Doorway {
+    /// The opening's centre, m: ahead of and left of the robot's origin.
+    pub centre_m: [f64; 2],
+    /// Direction through the door (the leg's heading) relative to the robot's heading, rad,
+    /// + left; the door's wall runs across it.
+    pub angle_rad: f64,
+    /// Half the opening, jamb to jamb, m.
     pub half_width_m: f64,
 }
 
@@ -527,6 +558,23 @@ impl Pafsis {
         let (width, point, position) = (leg.lane_width_m?, leg.line_point_m?, self.position_m?);
         Some(Lane {
             left_m: left_of_line(position, point, leg.heading_rad),
+            angle_rad: wrap_angle(leg.heading_rad - self.heading_rad),
+            half_width_m: 0.5 * width,
+        })
+    }
+
+    /// The door of the current leg, where the map gives its opening and the start place a
+    /// position; `None` otherwise, and when no leg is active.
+    pub fn doorway(&self) -> Option<Doorway> {
+        if self.status != GoalStatus::Active {
+            return None;
+        }
+        let leg = self.legs.get(self.leg)?;
+        let (([cx, cy], width), [x, y]) = (leg.door_m?, self.position_m?);
+        let (s, c) = self.heading_rad.sin_cos();
+        let (dx, dy) = (cx - x, cy - y);
+        Some(Doorway {
+            centre_m: [c * dx + s * dy, -s * dx + c * dy],
             angle_rad: wrap_angle(leg.heading_rad - self.heading_rad),
             half_width_m: 0.5 * width,
         })

@@ -77,12 +77,40 @@ pub enum Until {
 #[serde(tag = "do", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Action {
     /// Leave a room straight through its door into the corridor (`length_m` from the room
-    /// place to the corridor place in front of the door).
-    ExitRoom { door: String, length_m: f64 },
+    /// place to the corridor place in front of the door). With the door's opening
+    /// ([`Opening`]), the robot keeps its footprint inside it while it steers.
+    ExitRoom {
+        door: String,
+        length_m: f64,
+        /// The door's opening, jamb to jamb, m (with `door_at_m`).
+        #[serde(default)]
+        width_m: Option<f64>,
+        /// How far from the action's start the robot crosses the door's wall, m (with `width_m`).
+        #[serde(default)]
+        door_at_m: Option<f64>,
+    },
     /// Enter a room straight through its door.
-    EnterRoom { door: String, length_m: f64 },
+    EnterRoom {
+        door: String,
+        length_m: f64,
+        /// The door's opening, jamb to jamb, m (with `door_at_m`).
+        #[serde(default)]
+        width_m: Option<f64>,
+        /// How far from the action's start the robot crosses the door's wall, m (with `width_m`).
+        #[serde(default)]
+        door_at_m: Option<f64>,
+    },
     /// Drive straight through a doorway between two places that are not both rooms/corridor.
-    GoThroughDoor { door: String, length_m: f64 },
+    GoThroughDoor {
+        door: String,
+        length_m: f64,
+        /// The door's opening, jamb to jamb, m (with `door_at_m`).
+        #[serde(default)]
+        width_m: Option<f64>,
+        /// How far from the action's start the robot crosses the door's wall, m (with `width_m`).
+        #[serde(default)]
+        door_at_m: Option<f64>,
+    },
     /// Turn in place (into the corridor, at a corner), by `angle_deg` (default 90) to `side`.
     Turn {
         side: Side,
@@ -125,6 +153,18 @@ impl Action {
         }
     }
 
+    /// A doorway action's opening where the map gives it: its width and how far before the
+    /// action's end the door's wall is, m. The robot keeps its footprint inside the opening
+    /// while it steers, as it keeps inside a corridor's width.
+    pub fn opening(&self) -> Option<(f64, f64)> {
+        match self {
+            Action::ExitRoom { length_m, width_m, door_at_m, .. }
+            | Action::EnterRoom { length_m, width_m, door_at_m, .. }
+            | Action::GoThroughDoor { length_m, width_m, door_at_m, .. } => Some(((*width_m)?, length_m - (*door_at_m)?)),
+            _ => None,
+        }
+    }
+
     /// Heading change of this action, rad (+ = left).
     pub fn turn_rad(&self) -> f64 {
         match self {
@@ -137,9 +177,9 @@ impl Action {
 impl fmt::Display for Action {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Action::ExitRoom { door, length_m } => write!(f, "exit the room through {door} ({length_m} m)"),
-            Action::EnterRoom { door, length_m } => write!(f, "enter the room through {door} ({length_m} m)"),
-            Action::GoThroughDoor { door, length_m } => write!(f, "go through door {door} ({length_m} m)"),
+            Action::ExitRoom { door, length_m, .. } => write!(f, "exit the room through {door} ({length_m} m)"),
+            Action::EnterRoom { door, length_m, .. } => write!(f, "enter the room through {door} ({length_m} m)"),
+            Action::GoThroughDoor { door, length_m, .. } => write!(f, "go through door {door} ({length_m} m)"),
             Action::Turn { side, angle_deg } => write!(f, "turn {} {angle_deg}°", side.name()),
             Action::FollowCorridor { length_m, doors_left, doors_right, until, width_m } => {
                 write!(f, "follow the corridor {length_m} m passing {doors_left} doors left, {doors_right} right")?;
@@ -332,11 +372,22 @@ fn check_action(
         }
     };
     match a {
-        Action::ExitRoom { door, length_m }
-        | Action::EnterRoom { door, length_m }
-        | Action::GoThroughDoor { door, length_m } => {
+        Action::ExitRoom { door, length_m, width_m, door_at_m }
+        | Action::EnterRoom { door, length_m, width_m, door_at_m }
+        | Action::GoThroughDoor { door, length_m, width_m, door_at_m } => {
             door_check(door)?;
-            length_check(*length_m)
+            length_check(*length_m)?;
+            match (*width_m, *door_at_m) {
+                (None, None) => Ok(()),
+                (Some(w), Some(at)) if !(w.is_finite() && w > 0.0) => {
+                    Err(format!("width_m must be a positive finite width, not {w} (at {at} m)"))
+                }
+                (Some(_), Some(at)) if !(at.is_finite() && (0.0..=*length_m).contains(&at)) => {
+                    Err(format!("door_at_m must be between 0 and length_m ({length_m}), not {at}"))
+                }
+                (Some(_), Some(_)) => Ok(()),
+                _ => Err("width_m and door_at_m go together: give both (the door's opening) or neither".into()),
+            }
         }
         Action::Turn { angle_deg, .. } => {
             if angle_deg.is_finite() && *angle_deg > 0.0 && *angle_deg <= 180.0 {
@@ -397,6 +448,24 @@ mod tests {
         assert_eq!(m.edges[0].cost_m(), 2.0);
         assert!((m.edges[0].arrival_heading_rad() - 0.0).abs() < 1e-12);
         assert_eq!(m.place("D1").unwrap().kind, PlaceKind::Door);
+    }
+
+    #[test]
+    fn a_doorways_opening_is_both_its_width_and_where_its_wall_is() {
+        let with = |extra: &str| TINY.replace("length_m = 2.0 }", &format!("length_m = 2.0{extra} }}"));
+        let m = TopoMap::parse(&with(", width_m = 0.9, door_at_m = 1.5"), "tiny.toml").unwrap();
+        assert_eq!(m.edges[0].actions[0].opening(), Some((0.9, 0.5)));
+        assert_eq!(m.edges[0].actions[1].opening(), None);
+        assert_eq!(TopoMap::parse(TINY, "tiny.toml").unwrap().edges[0].actions[0].opening(), None);
+        for (extra, says) in [
+            (", width_m = 0.9", "go together"),
+            (", door_at_m = 1.0", "go together"),
+            (", width_m = 0.0, door_at_m = 1.0", "width_m must be a positive"),
+            (", width_m = 0.9, door_at_m = 2.5", "door_at_m must be between 0 and length_m"),
+        ] {
+            let e = err(&with(extra));
+            assert!(e.contains("edge #1") && e.contains("action 1") && e.contains(says), "{extra}: {e}");
+        }
     }
 
     fn err(text: &str) -> String {

@@ -8,7 +8,7 @@ pub mod local;
 pub mod map;
 
 pub use global::{Mission, Plan, PlanError, plan};
-pub use local::{Goal, GoalStatus, Lane, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress};
+pub use local::{Doorway, Goal, GoalStatus, Lane, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress};
 pub use map::{Action, MapError, PlaceKind, Side, TopoMap, Until};
 
 use crate::config::ConfigError;
