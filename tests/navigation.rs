@@ -232,7 +232,8 @@ fn the_door_of_a_doorway_leg_comes_from_the_map_opening_and_dead_reckoning() {
     }
     assert_eq!(nav.doorway(), None);
     // nor where the map gives no opening
-    let plain = TopoMap::parse(&flownav::sim::OFFICE_MAP_TOML.replace(", width_m = 0.9, door_at_m = 2.0", ""), "plain").unwrap();
+    let plain = TopoMap::parse(&flownav::sim::OFFICE_MAP_TOML.replace(", width_m = 0.9, door_at_m = 2.0", ""), "plain")
+        .unwrap();
     assert_eq!(mission(&plain, "R9:D2").doorway(), None);
 }
 

@@ -160,7 +160,9 @@ impl Action {
         match self {
             Action::ExitRoom { length_m, width_m, door_at_m, .. }
             | Action::EnterRoom { length_m, width_m, door_at_m, .. }
-            | Action::GoThroughDoor { length_m, width_m, door_at_m, .. } => Some(((*width_m)?, length_m - (*door_at_m)?)),
+            | Action::GoThroughDoor { length_m, width_m, door_at_m, .. } => {
+                Some(((*width_m)?, length_m - (*door_at_m)?))
+            }
             _ => None,
         }
     }
