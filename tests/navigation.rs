@@ -237,6 +237,30 @@ fn the_door_of_a_doorway_leg_comes_from_the_map_opening_and_dead_reckoning() {
     assert_eq!(mission(&plain, "R9:D2").doorway(), None);
 }
 
+#[test]
+fn a_doorway_leg_aims_onto_the_doors_axis() {
+    use std::f64::consts::FRAC_PI_2;
+    let plain = TopoMap::parse(&flownav::sim::OFFICE_MAP_TOML.replace(", width_m = 0.9, door_at_m = 2.0", ""), "plain")
+        .unwrap();
+    let none = Perception::default();
+    // in R9, 0.5 m east of the door's axis (right of it), facing north again
+    let aim = |map: &TopoMap| {
+        let mut nav = mission(map, "R9:D2");
+        nav.step(&none, BodyVelocity::new(0.0, -FRAC_PI_2), 1.0);
+        nav.step(&none, BodyVelocity::new(0.5, 0.0), 1.0);
+        nav.step(&none, BodyVelocity::new(0.0, FRAC_PI_2), 1.0);
+        let goal = nav.step(&none, BodyVelocity::ZERO, 0.01);
+        assert_eq!(nav.progress().leg, 0, "still leaving the room");
+        goal.angle_rad
+    };
+    // with the opening: back onto the axis over 0.6 m, to meet the opening square on
+    let a = aim(&office());
+    assert!((a - 0.5f64.atan2(0.6)).abs() < 0.01, "{a}");
+    // without: the corridor's cross-track pull over 1.5 m
+    let a = aim(&plain);
+    assert!((a - 0.5f64.atan2(1.5)).abs() < 0.01, "{a}");
+}
+
 /// R9:D2 with scripted odometry: out of R9 onto the corridor's centre line, a swerve 0.5 m
 /// south, the corridor leg run out there, and the turn to face D2; returns at the last leg.
 fn swerved_to_the_last_leg(params: PafsisParams) -> Pafsis {
