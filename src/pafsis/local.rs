@@ -144,7 +144,7 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
             turned = true;
         }
         heading = edge_heading;
-        for action in &edge.actions {
+        for (i, action) in edge.actions.iter().enumerate() {
             let leg = |kind, heading_rad| Leg {
                 kind,
                 heading_rad,
@@ -158,7 +158,7 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                 | Action::EnterRoom { door, length_m, .. }
                 | Action::GoThroughDoor { door, length_m, .. } => {
                     // the door, placed back from the edge's end: for the edge's last action
-                    let last = std::ptr::eq(action, edge.actions.last().unwrap_or(action));
+                    let last = i + 1 == edge.actions.len();
                     let door_m = match (action.opening(), point, last) {
                         (Some((width, before)), Some([x, y]), true) => {
                             Some(([x - before * heading.cos(), y - before * heading.sin()], width))

@@ -381,8 +381,8 @@ fn check_action(
             length_check(*length_m)?;
             match (*width_m, *door_at_m) {
                 (None, None) => Ok(()),
-                (Some(w), Some(at)) if !(w.is_finite() && w > 0.0) => {
-                    Err(format!("width_m must be a positive finite width, not {w} (at {at} m)"))
+                (Some(w), Some(_)) if !(w.is_finite() && w > 0.0) => {
+                    Err(format!("width_m must be a positive finite width, not {w}"))
                 }
                 (Some(_), Some(at)) if !(at.is_finite() && (0.0..=*length_m).contains(&at)) => {
                     Err(format!("door_at_m must be between 0 and length_m ({length_m}), not {at}"))
