@@ -35,6 +35,7 @@ pub mod offis;
 pub mod pafsis;
 pub mod perception;
 pub mod replay;
+pub mod rotation;
 pub mod runtime;
 pub mod sim;
 pub mod sources;

@@ -34,6 +34,7 @@ use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
 use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
 use crate::perception::{Obstacle, Perception};
+use crate::rotation::TurnCompensation;
 use hal::{BodyVelocity, Calibration, Frame, LumaImage, Undistorter};
 
 #[derive(Debug, thiserror::Error)]
@@ -178,6 +179,8 @@ pub struct Pipeline {
     undistorter: Option<((usize, usize), Option<Undistorter>)>,
     undistorted: LumaImage,
     flow: Box<dyn FlowEngine>,
+    /// Centres the block search on the turn ([`crate::rotation`]).
+    turn: TurnCompensation,
     backend: BackendReport,
     offis: Offis,
     navigator: Navigator,
@@ -228,6 +231,7 @@ impl Pipeline {
             stop_gate: (cfg.mofis.stop_margin_m, cfg.mofis.stop_decel_mps2),
             guard: (cfg.mofis.guard_clearance_m, cfg.mofis.guard_evidence),
             flow,
+            turn: TurnCompensation::default(),
             backend,
             offis: Offis::new(cfg.offis.clone())?,
             navigator,
@@ -332,7 +336,7 @@ impl Pipeline {
         let dt = (frame.t_ns - key.frame.t_ns) as f64 * 1e-9;
         // the pair's motion as one constant velocity over its interval
         let span = BodyVelocity::new(key.travel_m / dt, key.yaw_rad / dt);
-        let flow = self.flow.compute(&key.frame.image, &frame.image)?.clone();
+        let flow = self.turn.flow(self.flow.as_mut(), &key.frame.image, &frame.image, &calib, span, dt)?;
         // the TPO is decided over the last steps: OFFIS needs the turn since its previous step
         let since = Motion { yaw_rad: odometry.omega * frame_dt, dt: frame_dt };
         let perception = self.offis.step_filtered(&flow, span, dt, &calib, since)?;

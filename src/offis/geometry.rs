@@ -146,6 +146,12 @@ impl FrameMotion {
         (t[2].abs() > 1e-6).then(|| [cam.cx + cam.fx * t[0] / t[2], cam.cy + cam.fy * t[1] / t[2]])
     }
 
+    /// Where a distant point seen at pixel `(x, y)` in frame A appears in frame B: the end of
+    /// its rotational flow. `None` if it lies behind camera B.
+    pub fn rotated(&self, cam: &PinholeCamera, x: f64, y: f64) -> Option<[f64; 2]> {
+        cam.project(mat_t_vec(&self.rot, cam.ray(x, y)))
+    }
+
     /// The translational part of the flow vector `(u, v)` at block centre `(x, y)`: its end
     /// point's ray turned into A's axes and re-projected, minus the start. `None` if that ray
     /// points behind the camera.
