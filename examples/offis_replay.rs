@@ -45,7 +45,7 @@ struct Args {
     files: Vec<PathBuf>,
 }
 
-/// The parts of a `bench-offis --json` report ([`flownav::offis::bench::Report`]) replayed.
+/// The parts of a `bench-offis --json` report ([`flownav::sim::bench::Report`]) replayed.
 #[derive(Deserialize)]
 struct Report {
     samples: Vec<Sample>,

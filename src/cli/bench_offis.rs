@@ -1,9 +1,9 @@
 //! `flownav bench-offis`: the OFFIS accuracy benchmark on a labelled scene set rendered by the
-//! simulator (see `flownav::offis::bench` and docs/offis.md). Prints the confusion matrix and
+//! simulator (see `flownav::sim::bench` and docs/offis.md). Prints the confusion matrix and
 //! the error figures, or the whole report as one JSON object with `--json`.
 
 use super::Common;
-use crate::offis::bench::{self, BenchOptions};
+use crate::sim::bench::{self, BenchOptions};
 use anyhow::{Context, bail};
 use hal::Calibration;
 use std::path::Path;

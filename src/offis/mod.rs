@@ -25,7 +25,6 @@
 //!
 //! The step is pure and deterministic: no clock, no I/O; its buffers are reused between frames.
 
-pub mod bench;
 pub mod classify;
 pub mod features;
 pub mod geometry;

@@ -31,6 +31,7 @@
 //! rendered frames and the driver's odometry; the true pose is used to render, to detect
 //! collisions, and to score the run.
 
+pub mod bench;
 mod contact;
 pub mod quality;
 pub mod stats;

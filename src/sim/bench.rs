@@ -60,7 +60,7 @@ impl Default for BenchOptions {
 }
 
 /// Frames per scene by default: 8 frame pairs, so the TPO filter's window
-/// ([`super::temporal::TemporalParams::window`], 8 steps) is full at the last frame; 0.27–0.8 s
+/// ([`crate::offis::temporal::TemporalParams::window`], 8 steps) is full at the last frame; 0.27–0.8 s
 /// of driving at 10–30 fps, 8–24 cm at 0.3 m/s.
 pub const FRAMES: usize = 9;
 
@@ -167,13 +167,13 @@ pub struct Sample {
     pub truth_obstacle: Option<(f64, f64)>,
     /// Reported obstacle (distance m, bearing rad), if present.
     pub obstacle: Option<(Option<f64>, Option<f64>)>,
-    pub features: super::features::Features,
+    pub features: crate::offis::features::Features,
     /// The envelope profile (forward, left per bin, m), for diagnosis.
     pub profile: Vec<Option<[f64; 2]>>,
     /// Blocks found nearer than the TPO, and in the reported obstacle's cluster.
     pub obstacle_blocks: [usize; 2],
     /// The planes fitted to the profile, for diagnosis.
-    pub model: super::features::TpoModel,
+    pub model: crate::offis::features::TpoModel,
 }
 
 /// The benchmark's result.
