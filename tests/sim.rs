@@ -105,6 +105,7 @@ fn summary_json_starts_with_the_contract_fields() {
             points_range_ok: Some(0.8),
             cells_ghost: None,
             obstacles_held: Some(0.5),
+            tpo_none_share: Some(0.1),
         },
     };
     let line = s.to_json_line();
@@ -118,6 +119,7 @@ fn summary_json_starts_with_the_contract_fields() {
     assert_eq!(v["seed"], 3);
     assert_eq!((v["points_range_ok"].as_f64(), v["cells_ghost"].is_null()), (Some(0.8), true), "flattened: {line}");
     assert_eq!(v["obstacles_held"].as_f64(), Some(0.5), "flattened: {line}");
+    assert_eq!(v["tpo_none_share"].as_f64(), Some(0.1), "flattened: {line}");
 }
 
 #[test]

@@ -25,6 +25,10 @@ pub struct Args {
     /// Forward speed of the camera while it drives through each scene's frames, m/s.
     #[arg(long, default_value_t = 0.3)]
     pub velocity: f64,
+    /// Turning scenes: each scene's turn rate is drawn from ±this, rad/s, while the camera
+    /// drives through it (0: straight ahead).
+    #[arg(long, default_value_t = 0.0, value_name = "RAD_S")]
+    pub omega_max: f64,
     /// Print one line per scene (truth, prediction, obstacle) to stderr while running.
     #[arg(long)]
     pub verbose_scenes: bool,
@@ -65,6 +69,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         seed: args.seed,
         noise: args.noise,
         velocity: args.velocity,
+        omega_max: args.omega_max,
         ..Default::default()
     };
     let started = std::time::Instant::now();
@@ -89,10 +94,11 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     } else {
         print!("{}", report.table());
         println!(
-            "({:.1} s; command: flownav bench-offis --scenes {} --seed {}{})",
+            "({:.1} s; command: flownav bench-offis --scenes {} --seed {}{}{})",
             started.elapsed().as_secs_f64(),
             args.scenes,
             args.seed,
+            if args.omega_max > 0.0 { format!(" --omega-max {}", args.omega_max) } else { String::new() },
             args.size.map_or(String::new(), |(w, h)| format!(" --size {w}x{h}"))
         );
     }

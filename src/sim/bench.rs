@@ -1,7 +1,8 @@
 //! The OFFIS accuracy benchmark (`flownav bench-offis`): a labelled scene set rendered with
 //! `mocks::scene` (walls, corners, doors, corridors and empty floor at varied distances, widths
 //! and angles, half of them with a box or a person in front, with sensor noise), each seen as a
-//! short sequence of frames while the camera drives forward, run through the real per-frame
+//! short sequence of frames while the camera drives forward (straight, or along an arc with
+//! `omega_max` > 0: each scene's turn rate drawn from ±`omega_max`), run through the real per-frame
 //! pipeline ([`crate::step::Pipeline`]: flow, OFFIS with its temporal filter) and compared with
 //! the ground truth (`mocks::truth`) at the last frame.
 //!
@@ -48,14 +49,27 @@ pub struct BenchOptions {
     pub noise: f64,
     /// Fraction of the scenes with an obstacle.
     pub obstacle_frac: f64,
-    /// Frames per scene: the camera drives straight ahead through them, the last one at the
-    /// scene's start pose (where the truth is taken); at least 2 (one frame pair).
+    /// Frames per scene: the camera drives through them, the last one at the scene's start
+    /// pose (where the truth is taken); at least 2 (one frame pair).
     pub frames: usize,
+    /// Turning scenes: each scene's turn rate is drawn uniformly from ±this, rad/s, and the
+    /// camera drives along that arc (the odometry says so); 0 drives straight ahead, and the
+    /// scene set is then the same as without the option.
+    pub omega_max: f64,
 }
 
 impl Default for BenchOptions {
     fn default() -> Self {
-        Self { scenes: 200, seed: 2, velocity: 0.3, fps: [10.0, 30.0], noise: 2.0, obstacle_frac: 0.5, frames: FRAMES }
+        Self {
+            scenes: 200,
+            seed: 2,
+            velocity: 0.3,
+            fps: [10.0, 30.0],
+            noise: 2.0,
+            obstacle_frac: 0.5,
+            frames: FRAMES,
+            omega_max: 0.0,
+        }
     }
 }
 
@@ -70,6 +84,8 @@ pub struct Case {
     pub label: String,
     pub scene: Scene,
     pub fps: f64,
+    /// Turn rate while driving through the scene's frames, rad/s (positive = left).
+    pub omega: f64,
 }
 
 fn uniform(rng: &mut SplitMix64, [lo, hi]: [f64; 2]) -> f64 {
@@ -136,7 +152,12 @@ pub fn case(seed: u64, index: usize, opts: &BenchOptions) -> Case {
     }
     let fps = uniform(&mut rng, opts.fps);
     label.push_str(&format!(" @{fps:.0}fps"));
-    Case { label, scene, fps }
+    // drawn last, so that the straight scene set stays what it was
+    let omega = if opts.omega_max > 0.0 { uniform(&mut rng, [-opts.omega_max, opts.omega_max]) } else { 0.0 };
+    if omega != 0.0 {
+        label.push_str(&format!(" ω={omega:+.3}"));
+    }
+    Case { label, scene, fps, omega }
 }
 
 fn shape_of(c: TpoClass) -> TpoShape {
@@ -181,6 +202,8 @@ pub struct Sample {
 pub struct Report {
     pub scenes: usize,
     pub seed: u64,
+    /// The turn rates were drawn from ±this, rad/s (0: straight drives).
+    pub omega_max: f64,
     pub width: u32,
     pub height: u32,
     /// Rows = truth, columns = predicted, in wall, corner, door, corridor, none order.
@@ -211,9 +234,10 @@ fn quantiles(mut v: Vec<f64>) -> [f64; 2] {
     [at(0.5), at(0.9)]
 }
 
-/// Renders scene `index` (case `c`) as `opts.frames` frames into `out`: the camera drives
-/// straight ahead at `opts.velocity`, one frame every `1 / c.fps` s, and the last frame is taken
-/// at the scene's start pose. Sensor noise is drawn anew for every frame.
+/// Renders scene `index` (case `c`) as `opts.frames` frames into `out`: the camera drives at
+/// `opts.velocity` and turns at `c.omega` (along the exact arc), one frame every `1 / c.fps` s,
+/// and the last frame is taken at the scene's start pose. Sensor noise is drawn anew for every
+/// frame.
 pub fn render_sequence(c: &Case, calib: &Calibration, opts: &BenchOptions, index: usize, out: &mut Vec<Frame>) {
     out.clear();
     let dt = 1.0 / c.fps;
@@ -225,8 +249,13 @@ pub fn render_sequence(c: &Case, calib: &Calibration, opts: &BenchOptions, index
         ..Effects::default()
     };
     let pose = |j: usize| {
-        let back = opts.velocity * dt * (opts.frames - 1 - j) as f64;
-        Pose::new(end.x - back * end.yaw.cos(), end.y - back * end.yaw.sin(), end.yaw)
+        let frames_back = (opts.frames - 1 - j) as f64;
+        if c.omega == 0.0 {
+            let back = opts.velocity * dt * frames_back;
+            Pose::new(end.x - back * end.yaw.cos(), end.y - back * end.yaw.sin(), end.yaw)
+        } else {
+            end.advance(opts.velocity, c.omega, -dt * frames_back)
+        }
     };
     for j in 0..opts.frames {
         let mut image = LumaImage::default();
@@ -250,6 +279,9 @@ pub fn run(
     if !(opts.velocity.is_finite() && opts.velocity > 0.0 && opts.fps[0] > 0.0 && opts.fps[1] >= opts.fps[0]) {
         return Err(BenchError::Options("velocity and frame rates must be positive".into()));
     }
+    if !(opts.omega_max.is_finite() && opts.omega_max >= 0.0) {
+        return Err(BenchError::Options("--omega-max must be zero or a positive turn rate, rad/s".into()));
+    }
     if opts.frames < 2 {
         return Err(BenchError::Options("a scene needs at least 2 frames (one frame pair)".into()));
     }
@@ -260,7 +292,7 @@ pub fn run(
         let c = case(opts.seed, i, opts);
         render_sequence(&c, calib, opts, i, &mut frames);
         let truth = GroundTruth::new(&c.scene.world, calib).frame(c.scene.start(calib));
-        let odo = BodyVelocity::new(opts.velocity, 0.0);
+        let odo = BodyVelocity::new(opts.velocity, c.omega);
         // a new scene: nothing of the last one is remembered (a pair gap, as after a stop)
         pipeline.fail_safe();
         let step_err = |source| BenchError::Step { index: i, scene: c.label.clone(), source: Box::new(source) };
@@ -332,6 +364,7 @@ fn report(opts: &BenchOptions, calib: &Calibration, samples: Vec<Sample>) -> Rep
     Report {
         scenes: samples.len(),
         seed: opts.seed,
+        omega_max: opts.omega_max,
         width: calib.camera.width,
         height: calib.camera.height,
         confusion,
@@ -351,8 +384,16 @@ impl Report {
     /// The human-readable summary (confusion matrix and error figures).
     pub fn table(&self) -> String {
         let mut s = format!(
-            "OFFIS accuracy: {} scenes, seed {}, {}x{}\n\nconfusion (rows = truth, columns = predicted):\n{:>10}",
-            self.scenes, self.seed, self.width, self.height, ""
+            "OFFIS accuracy: {} scenes, seed {}, {}x{}, {}\n\nconfusion (rows = truth, columns = predicted):\n{:>10}",
+            self.scenes,
+            self.seed,
+            self.width,
+            self.height,
+            match self.omega_max {
+                0.0 => "driving straight".to_string(),
+                w => format!("turning at up to ±{w} rad/s"),
+            },
+            ""
         );
         for shape in TpoShape::ALL {
             s.push_str(&format!("{:>9}", shape.name()));

@@ -47,7 +47,7 @@ use hal::fnp_driver::{FnpBase, FnpConfig, SerialBaseError};
 use hal::{BaseEvent, BodyVelocity, Calibration, Frame, LumaImage, MotorBase};
 use mocks::kinematics::{CollisionFn, Pose as KPose};
 use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimDevice, SimServer};
-use mocks::{Effects, GroundTruth, Pose, Renderer, World};
+use mocks::{Effects, GroundTruth, Pose, Renderer, TpoClass, World};
 use serde::Serialize;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -483,6 +483,7 @@ pub async fn run(
                     record::record_step(log, odometry, &out, &pipeline);
                 }
                 scored.observe(&setup.world, &pose, pipeline.surface_points(), &pipeline.memory().occupied());
+                scored.observe_tpo(truth.tpo(pose).shape != TpoClass::None, out.perception.tpo.shape == TpoShape::None);
                 last_output = Some(out);
                 setpoint
             }

@@ -13,6 +13,9 @@
 //!   obstacle (box, person), whether the memory holds an occupied cell within [`GHOST_M`] of
 //!   that obstacle. The faces a robot passes leave the camera's view; this says how often the
 //!   memory still has them when it matters.
+//! - **TPO seen**: in each step where the ground truth in front of the camera is a TPO (wall,
+//!   corner, door, corridor), whether OFFIS said `none` there: landmarks the planner could not
+//!   use, e.g. while the robot turns or stands.
 
 use crate::offis::points::SurfacePoint;
 use mocks::{Pose, World};
@@ -39,6 +42,8 @@ pub struct Quality {
     ghosts: u64,
     near: u64,
     held: u64,
+    tpo_truth: u64,
+    tpo_none: u64,
 }
 
 /// The fractions, for the JSON summary (`None` when nothing was scored).
@@ -51,6 +56,9 @@ pub struct QualitySummary {
     /// Steps with an obstacle within 0.68 m of the robot's origin in which the memory held an
     /// occupied cell on it (obstacle-steps).
     pub obstacles_held: Option<f64>,
+    /// Steps whose ground truth is a TPO (wall, corner, door, corridor) in which OFFIS said
+    /// `none`, as a share of those steps.
+    pub tpo_none_share: Option<f64>,
 }
 
 impl Quality {
@@ -82,12 +90,21 @@ impl Quality {
         }
     }
 
+    /// Scores one step's TPO: whether the truth is one (not `none`), and whether OFFIS said `none`.
+    pub fn observe_tpo(&mut self, truth_is_tpo: bool, said_none: bool) {
+        if truth_is_tpo {
+            self.tpo_truth += 1;
+            self.tpo_none += u64::from(said_none);
+        }
+    }
+
     pub fn summary(&self) -> QualitySummary {
         let frac = |n: u64, d: u64| (d > 0).then(|| (n as f64 / d as f64 * 1000.0).round() / 1000.0);
         QualitySummary {
             points_range_ok: frac(self.points_good, self.points),
             cells_ghost: frac(self.ghosts, self.cells),
             obstacles_held: frac(self.held, self.near),
+            tpo_none_share: frac(self.tpo_none, self.tpo_truth),
         }
     }
 }
@@ -129,8 +146,19 @@ mod tests {
         assert_eq!(s.cells_ghost, Some(0.5), "the cell in mid-corridor is a ghost: {s:?}");
         assert_eq!(
             Quality::default().summary(),
-            QualitySummary { points_range_ok: None, cells_ghost: None, obstacles_held: None }
+            QualitySummary { points_range_ok: None, cells_ghost: None, obstacles_held: None, tpo_none_share: None }
         );
+    }
+
+    #[test]
+    fn the_tpo_share_counts_none_only_where_the_truth_is_a_tpo() {
+        let mut q = Quality::default();
+        q.observe_tpo(true, true);
+        q.observe_tpo(true, false);
+        q.observe_tpo(true, false);
+        q.observe_tpo(true, false);
+        q.observe_tpo(false, true);
+        assert_eq!(q.summary().tpo_none_share, Some(0.25));
     }
 
     #[test]
