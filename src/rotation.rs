@@ -153,6 +153,31 @@ mod tests {
     }
 
     #[test]
+    fn the_rotational_flow_is_the_closed_form_and_de_rotates_to_nothing() {
+        // camera level and on the turning axis: a pure turn ψ to the left moves the ray at
+        // horizontal angle α (right of the axis) to α + ψ; x' = cx + f·tan(α + ψ) and
+        // y' = cy + (y − cy)·cos α / cos(α + ψ)
+        let mut calib = Calibration::nominal_c310();
+        calib.mount.x_m = 0.0;
+        let cam = PinholeCamera::new(&calib, 1280, 720);
+        for psi in [0.004, -0.02, 0.06] {
+            let motion = FrameMotion::from_odometry(&cam, BodyVelocity::new(0.0, psi / 0.1), 0.1);
+            for (x, y) in [(0.0, 0.0), (639.5, 359.5), (1279.0, 100.0), (300.0, 700.0)] {
+                let alpha = ((x - cam.cx) / cam.fx).atan();
+                let want =
+                    [cam.cx + cam.fx * (alpha + psi).tan(), cam.cy + (y - cam.cy) * alpha.cos() / (alpha + psi).cos()];
+                let got = motion.rotated(&cam, x, y).unwrap();
+                assert!(
+                    (got[0] - want[0]).abs() < 1e-9 && (got[1] - want[1]).abs() < 1e-9,
+                    "ψ {psi} at ({x}, {y}): {got:?} vs {want:?}"
+                );
+                let [u, v] = motion.derotate(&cam, x, y, got[0] - x, got[1] - y).unwrap();
+                assert!(u.abs() < 1e-9 && v.abs() < 1e-9, "de-rotated ({u}, {v})");
+            }
+        }
+    }
+
+    #[test]
     fn a_view_moved_past_the_search_radius_is_found_around_the_shift() {
         // frame B is frame A moved 29 px right: beyond the radius of 16, found with the shift
         let (w, h) = (320, 180);

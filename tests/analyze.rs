@@ -155,3 +155,39 @@ fn bad_folders_give_clear_errors() {
     let e = stderr(&["analyze", "--frames", d]);
     assert!(e.contains("odometry.csv") && e.contains("line 3"), "{e}");
 }
+
+/// The office corridor driven at 0.3 m/s while turning at ±0.12 rad/s (7°/s), 720p at 10 fps:
+/// the view moves 15–30 px sideways per pair, beyond the block search's radius of 16 px, and
+/// OFFIS must still see the corridor on every pair.
+#[test]
+fn a_turning_drive_down_the_corridor_is_seen_as_a_corridor() {
+    for omega in ["0.12", "-0.12"] {
+        let dir = tempfile::tempdir().unwrap();
+        let frames = dir.path().join("turn");
+        let out = flownav(&[
+            "render",
+            "--start",
+            "2,0,0",
+            "--velocity",
+            "0.3",
+            "--omega",
+            omega,
+            "--fps",
+            "10",
+            "--frames",
+            "9",
+            "--size",
+            "1280x720",
+            "--out",
+            frames.to_str().unwrap(),
+        ]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let calib = frames.join("calib.toml");
+        let out = flownav(&["analyze", "--frames", frames.to_str().unwrap(), "--calib", calib.to_str().unwrap()]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let text = String::from_utf8(out.stdout).unwrap();
+        let shapes: Vec<String> =
+            text.lines().map(check_line).map(|v| v["tpo"]["shape"].as_str().unwrap().to_string()).collect();
+        assert_eq!(shapes, vec!["corridor"; 8], "omega {omega}: {text}");
+    }
+}
