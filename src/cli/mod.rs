@@ -6,7 +6,10 @@ use crate::config::Config;
 use crate::flow::Backend;
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
-use std::path::PathBuf;
+use hal::Calibration;
+use std::fmt::Debug;
+use std::ops::RangeBounds;
+use std::path::{Path, PathBuf};
 
 pub mod analyze;
 #[cfg(feature = "sim")]
@@ -61,6 +64,29 @@ impl Common {
         }
         cfg.validate().context("after applying command-line flags")?;
         Ok(cfg)
+    }
+
+    /// The `--calib` file; the built-in nominal C310 when the default path is not reachable from
+    /// this folder, so the default works from anywhere.
+    pub fn calibration(&self) -> anyhow::Result<Calibration> {
+        let path = &self.calib;
+        if path == Path::new("calib/c310.toml") && !path.exists() {
+            tracing::warn!(
+                "calib/c310.toml not found from this directory: using the built-in nominal C310 calibration"
+            );
+            return Ok(Calibration::nominal_c310());
+        }
+        Calibration::load(path).with_context(|| format!("loading the calibration {}", path.display()))
+    }
+}
+
+/// A `--size WxH` flag: width and height, each a whole number of pixels within `sides`.
+pub fn parse_size(s: &str, sides: impl RangeBounds<u32> + Debug) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("size {s:?} must be WxH, e.g. 640x360"))?;
+    let p = |v: &str| v.trim().parse::<u32>().ok().filter(|n| sides.contains(n));
+    match (p(w), p(h)) {
+        (Some(w), Some(h)) => Ok((w, h)),
+        _ => Err(format!("size {s:?}: width and height must be whole numbers of pixels in {sides:?}")),
     }
 }
 
