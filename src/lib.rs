@@ -15,6 +15,7 @@
 //! | [`control`] | set-point safety limiter: speed, turn rate, acceleration | |
 //! | [`sources`] | where `run` gets frames: `--camera /dev/videoN` (V4L2) or `frames:DIR` played as a camera | |
 //! | [`logging`] | MCAP run logs for Foxglove: the non-blocking writer, the replay reader, `log info` | |
+//! | [`replay`] | `flownav replay`: a run log's frames and odometry through a fresh pipeline, compared with the logged outputs bit for bit | |
 //! | [`runtime`] | `flownav run`: camera thread → step thread → base, latest-frame-wins, set-point expiry and stops, latency | |
 //! | [`step`] | the pure per-frame step: flow → OFFIS → PAFSIS → MOFIS → set-point (shared by run, sim, analyze, replay) | Fig. 3 |
 //! | [`sim`] | the closed loop of `flownav sim`: rendered camera → pipeline → FNP/1 driver → simulated base over a pty; the OFFIS accuracy bench (feature `sim`) | |
