@@ -15,13 +15,16 @@
 //! | [`control`] | set-point safety limiter: speed, turn rate, acceleration | |
 //! | [`sources`] | where `run` gets frames: `--camera /dev/videoN` (V4L2) or `frames:DIR` played as a camera | |
 //! | [`logging`] | MCAP run logs for Foxglove: the non-blocking writer, the replay reader, `log info` | |
+//! | [`replay`] | `flownav replay`: a run log's frames and odometry through a fresh pipeline, compared with the logged outputs bit for bit | |
 //! | [`runtime`] | `flownav run`: camera thread → step thread → base, latest-frame-wins, set-point expiry and stops, latency | |
 //! | [`step`] | the pure per-frame step: flow → OFFIS → PAFSIS → MOFIS → set-point (shared by run, sim, analyze, replay) | Fig. 3 |
-//! | [`sim`] | the closed loop of `flownav sim`: rendered camera → pipeline → FNP/1 driver → simulated base over a pty | |
+//! | [`sim`] | the closed loop of `flownav sim`: rendered camera → pipeline → FNP/1 driver → simulated base over a pty; the OFFIS accuracy bench (feature `sim`) | |
 //! | [`config`] | the TOML configuration file, defaults and validation | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
 //! Hardware types and traits are in the `hal` crate (`hal/`), the simulated world in `mocks`.
+//! Only [`sim`] and the simulator's subcommands reach `mocks`, behind the default feature `sim`;
+//! a robot build (`--no-default-features`) leaves the renderer and the simulated bases out.
 
 pub mod cli;
 pub mod config;
@@ -37,6 +40,7 @@ pub mod perception;
 pub mod replay;
 pub mod rotation;
 pub mod runtime;
+#[cfg(feature = "sim")]
 pub mod sim;
 pub mod sources;
 pub mod step;

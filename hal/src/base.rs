@@ -81,10 +81,6 @@ pub trait MotorBase: Send {
     }
 }
 
-/// Now on the host's monotonic clock (`CLOCK_MONOTONIC`, the clock V4L2 stamps frames with), ns.
-pub fn host_now_ns() -> u64 {
-    match nix::time::clock_gettime(nix::time::ClockId::CLOCK_MONOTONIC) {
-        Ok(ts) => ts.tv_sec() as u64 * 1_000_000_000 + ts.tv_nsec() as u64,
-        Err(_) => 0,
-    }
-}
+/// The drivers stamp odometry with the clock of the frames ([`crate::camera::monotonic_ns`]), so
+/// the step compares odometry and frame times directly.
+pub use crate::camera::monotonic_ns as host_now_ns;

@@ -8,18 +8,16 @@
 //! | [`image`] | [`LumaImage`], the 8-bit grey frame every stage works on, and [`Frame`] (image + capture time) |
 //! | [`calib`] | [`Calibration`]: pinhole intrinsics, distortion, and where the camera sits on the robot (`calib/*.toml`) |
 //! | [`undistort`] | the plumb_bob lens model and its inverse, [`Undistorter`]: a distorted frame → the pinhole frame with the same K |
-//! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103) and [`Odometry`] |
+//! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103), [`Odometry`], [`motion::wrap_angle`] |
 //! | [`error`] | [`ErrorKind`]: what the runtime does about a hardware error (reconnect, stop, skip, report) |
-//! | [`camera`] | the [`Camera`] trait |
 //! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`], [`LinkStats`] |
 //! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
 //! | [`fnp_driver`] | the FNP/1 host driver over tokio-serial, reconnect/back-off, device-clock mapping |
 //! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
-//! | [`camera`] | the [`Camera`] trait and the monotonic clock frames are stamped with |
+//! | [`camera`] | the [`Camera`] trait and the monotonic clock that frames and odometry are stamped with |
 //! | [`v4l2`] | the V4L2 camera (`/dev/videoN`), device listing, the `[camera]` config table |
 //! | [`mjpeg`] | MJPEG → luma (zune-jpeg), inserting the standard Huffman tables UVC frames omit |
 //! | [`yuyv`] | YUYV 4:2:2 → luma |
-//! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`] |
 
 pub mod base;
 pub mod calib;

@@ -27,3 +27,23 @@ pub struct Odometry {
     pub left_ticks: i64,
     pub right_ticks: i64,
 }
+
+/// Wraps an angle to (−π, π]: headings and bearings compare across the ±π seam.
+pub fn wrap_angle(a: f64) -> f64 {
+    let w = a.rem_euclid(std::f64::consts::TAU);
+    if w > std::f64::consts::PI { w - std::f64::consts::TAU } else { w }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f64::consts::{FRAC_PI_2, PI};
+
+    #[test]
+    fn wrap_angle_range() {
+        assert!((wrap_angle(3.0 * PI) - PI).abs() < 1e-12);
+        assert!((wrap_angle(-FRAC_PI_2 * 3.0) - FRAC_PI_2).abs() < 1e-12);
+        assert!((wrap_angle(-PI) - PI).abs() < 1e-12);
+        assert!(wrap_angle(-0.5) < 0.0);
+    }
+}

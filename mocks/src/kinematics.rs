@@ -14,6 +14,7 @@
 
 use crate::faults::SimRng;
 use hal::BodyVelocity;
+use hal::motion::wrap_angle;
 use std::sync::Arc;
 
 /// How far the base must move away from an obstacle before its bumper releases.
@@ -81,12 +82,6 @@ pub fn integrate(pose: &Pose, v: f64, omega: f64, dt: f64) -> Pose {
         (r * ((th + dth).sin() - th.sin()), -r * ((th + dth).cos() - th.cos()))
     };
     Pose { x: pose.x + dx, y: pose.y + dy, theta: wrap_angle(th + dth) }
-}
-
-/// Wraps an angle into (-π, π].
-pub fn wrap_angle(a: f64) -> f64 {
-    let w = a.rem_euclid(std::f64::consts::TAU);
-    if w > std::f64::consts::PI { w - std::f64::consts::TAU } else { w }
 }
 
 /// The simulated drive train.

@@ -7,8 +7,9 @@
 
 use crate::camera::CameraPose;
 use crate::render::{DepthMap, Renderer, SurfaceKind};
-use crate::world::{Face, Pose, World, cross, dist, wrap_angle};
+use crate::world::{Face, Pose, World, cross, dist};
 use hal::Calibration;
+use hal::motion::wrap_angle;
 use serde::{Deserialize, Serialize};
 
 /// The TPO definitions' thresholds (DESIGN.md, "Two-plane objects"), in one place.

@@ -9,6 +9,7 @@
 //! The renderer and the ground truth see walls as vertical [`Face`]s: each wall segment is split at
 //! its door openings into solid pieces, plus a lintel piece above every door.
 
+use hal::motion::wrap_angle;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -63,17 +64,6 @@ impl Pose {
         let (dx, dy) = (p[0] - self.x, p[1] - self.y);
         [c * dx + s * dy, -s * dx + c * dy]
     }
-}
-
-/// Wraps an angle to (-π, π].
-pub fn wrap_angle(a: f64) -> f64 {
-    let mut a = a % std::f64::consts::TAU;
-    if a > std::f64::consts::PI {
-        a -= std::f64::consts::TAU;
-    } else if a <= -std::f64::consts::PI {
-        a += std::f64::consts::TAU;
-    }
-    a
 }
 
 /// A wall: a polyline on the floor plan, extruded from the floor to `height`.

@@ -17,10 +17,10 @@ use crate::frames::{FrameFolder, load_luma};
 use crate::perception::Perception;
 use crate::step::Pipeline;
 use anyhow::{Context, bail};
-use hal::{BodyVelocity, Calibration, Frame};
+use hal::{BodyVelocity, Frame};
 use serde::Serialize;
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -88,15 +88,6 @@ impl Line {
     }
 }
 
-/// The calibration file; the built-in nominal C310 when the default path is not reachable.
-fn load_calib(path: &Path) -> anyhow::Result<Calibration> {
-    if path == Path::new("calib/c310.toml") && !path.exists() {
-        tracing::warn!("calib/c310.toml not found from this directory: using the built-in nominal C310 calibration");
-        return Ok(Calibration::nominal_c310());
-    }
-    Calibration::load(path).with_context(|| format!("loading the calibration {}", path.display()))
-}
-
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     if !(args.fps.is_finite() && args.fps > 0.0) {
         bail!("--fps {} must be a positive number of frames per second", args.fps);
@@ -112,7 +103,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     }
     let folder = FrameFolder::open(&args.frames)?;
     let cfg = common.config()?;
-    let calib = load_calib(&common.calib)?;
+    let calib = common.calibration()?;
     let mut pipeline = Pipeline::new(&cfg, calib, None)?;
     let stdout = std::io::stdout();
     let mut out = std::io::BufWriter::new(stdout.lock());

@@ -4,9 +4,7 @@
 
 use super::Common;
 use crate::sim::bench::{self, BenchOptions};
-use anyhow::{Context, bail};
-use hal::Calibration;
-use std::path::Path;
+use anyhow::bail;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -17,7 +15,7 @@ pub struct Args {
     #[arg(long, default_value_t = 2)]
     pub seed: u64,
     /// Render at this size instead of the calibration's (`WxH`, intrinsics scaled).
-    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    #[arg(long, value_name = "WxH", value_parser = |s: &str| super::parse_size(s, 64..))]
     pub size: Option<(u32, u32)>,
     /// Sensor noise, standard deviation in grey levels.
     #[arg(long, default_value_t = 2.0)]
@@ -37,29 +35,12 @@ pub struct Args {
     pub json: bool,
 }
 
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH like 640x360, got `{s}`"))?;
-    match (w.trim().parse::<u32>(), h.trim().parse::<u32>()) {
-        (Ok(w), Ok(h)) if w >= 64 && h >= 64 => Ok((w, h)),
-        _ => Err(format!("expected WxH with both at least 64, got `{s}`")),
-    }
-}
-
-/// The calibration file; the built-in nominal C310 when the default path is not reachable.
-fn load_calib(path: &Path) -> anyhow::Result<Calibration> {
-    if path == Path::new("calib/c310.toml") && !path.exists() {
-        tracing::warn!("calib/c310.toml not found from this directory: using the built-in nominal C310 calibration");
-        return Ok(Calibration::nominal_c310());
-    }
-    Calibration::load(path).with_context(|| format!("loading the calibration {}", path.display()))
-}
-
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     if !(args.noise.is_finite() && args.noise >= 0.0) {
         bail!("--noise {} must be zero or a positive number of grey levels", args.noise);
     }
     let cfg = common.config()?;
-    let calib = load_calib(&common.calib)?;
+    let calib = common.calibration()?;
     let calib = match args.size {
         Some((w, h)) => calib.scaled_to(w, h),
         None => calib,

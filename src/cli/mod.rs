@@ -1,21 +1,29 @@
 //! The `flownav` command line (clap derive). Each subcommand lives in its own module and
 //! exposes `Args` and `run(args, &Common)`.
+//! `render`, `sim`, `sim-base` and `bench-offis` need the simulator (feature `sim`).
 
 use crate::config::Config;
 use crate::flow::Backend;
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
-use std::path::PathBuf;
+use hal::Calibration;
+use std::fmt::Debug;
+use std::ops::RangeBounds;
+use std::path::{Path, PathBuf};
 
 pub mod analyze;
+#[cfg(feature = "sim")]
 pub mod bench_offis;
 pub mod devices;
 pub mod flow;
 pub mod log;
+#[cfg(feature = "sim")]
 pub mod render;
 pub mod replay;
 pub mod run;
+#[cfg(feature = "sim")]
 pub mod sim;
+#[cfg(feature = "sim")]
 pub mod sim_base;
 
 #[derive(Debug, Parser)]
@@ -57,12 +65,36 @@ impl Common {
         cfg.validate().context("after applying command-line flags")?;
         Ok(cfg)
     }
+
+    /// The `--calib` file; the built-in nominal C310 when the default path is not reachable from
+    /// this folder, so the default works from anywhere.
+    pub fn calibration(&self) -> anyhow::Result<Calibration> {
+        let path = &self.calib;
+        if path == Path::new("calib/c310.toml") && !path.exists() {
+            tracing::warn!(
+                "calib/c310.toml not found from this directory: using the built-in nominal C310 calibration"
+            );
+            return Ok(Calibration::nominal_c310());
+        }
+        Calibration::load(path).with_context(|| format!("loading the calibration {}", path.display()))
+    }
+}
+
+/// A `--size WxH` flag: width and height, each a whole number of pixels within `sides`.
+pub fn parse_size(s: &str, sides: impl RangeBounds<u32> + Debug) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("size {s:?} must be WxH, e.g. 640x360"))?;
+    let p = |v: &str| v.trim().parse::<u32>().ok().filter(|n| sides.contains(n));
+    match (p(w), p(h)) {
+        (Some(w), Some(h)) => Ok((w, h)),
+        _ => Err(format!("size {s:?}: width and height must be whole numbers of pixels in {sides:?}")),
+    }
 }
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Block optical flow between two images (DESIGN.md output contract with --json).
     Flow(flow::Args),
+    #[cfg(feature = "sim")]
     /// Render views of a simulated world: one PNG for a pose, or a labelled frame folder for a trajectory.
     Render(render::Args),
     /// List V4L2 cameras with their formats, sizes and frame rates.
@@ -71,14 +103,17 @@ pub enum Command {
     Log(log::Args),
     /// Drive a robot: camera → optical flow → OFFIS/PAFSIS/MOFIS → serial motor base (docs/deploy.md).
     Run(run::Args),
+    #[cfg(feature = "sim")]
     /// Serve a simulated motor base on a pseudo-terminal; prints its path (/dev/pts/N) first.
     SimBase(sim_base::Args),
     /// Re-run the pipeline on a run log's frames and odometry; --check compares with the logged outputs.
     Replay(replay::Args),
+    #[cfg(feature = "sim")]
     /// Closed loop in a simulated world: rendered camera, the pipeline, a simulated base over a pty; ends with a JSON summary.
     Sim(sim::Args),
     /// Run OFFIS over a frame folder: one JSON line per frame pair (perception and set-point).
     Analyze(analyze::Args),
+    #[cfg(feature = "sim")]
     /// OFFIS accuracy on a labelled simulated scene set: confusion matrix, obstacle errors.
     BenchOffis(bench_offis::Args),
 }
@@ -87,14 +122,18 @@ pub enum Command {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Flow(args) => flow::run(args, &cli.common),
+        #[cfg(feature = "sim")]
         Command::Render(args) => render::run(args, &cli.common),
         Command::Devices(args) => devices::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
+        #[cfg(feature = "sim")]
         Command::SimBase(args) => sim_base::run(args, &cli.common),
         Command::Run(args) => run::run(args, &cli.common),
         Command::Replay(args) => replay::run(args, &cli.common),
+        #[cfg(feature = "sim")]
         Command::Sim(args) => sim::run(args, &cli.common),
         Command::Analyze(args) => analyze::run(args, &cli.common),
+        #[cfg(feature = "sim")]
         Command::BenchOffis(args) => bench_offis::run(args, &cli.common),
     }
 }

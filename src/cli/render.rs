@@ -49,7 +49,7 @@ pub struct Args {
     #[arg(long, default_value_t = 30)]
     pub frames: usize,
     /// Render at this size instead of the calibration's (`WxH`, intrinsics scaled).
-    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    #[arg(long, value_name = "WxH", value_parser = |s: &str| super::parse_size(s, 16..))]
     pub size: Option<(u32, u32)>,
     /// Sensor noise, standard deviation in grey levels.
     #[arg(long, default_value_t = 0.0)]
@@ -76,14 +76,6 @@ fn parse_pose(s: &str) -> Result<Pose, String> {
     match v[..] {
         [x, y, yaw_deg] if v.iter().all(|x| x.is_finite()) => Ok(Pose::new(x, y, yaw_deg.to_radians())),
         _ => Err(format!("expected x,y,yaw_deg (metres, metres, degrees), got `{s}`")),
-    }
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH like 640x360, got `{s}`"))?;
-    match (w.trim().parse::<u32>(), h.trim().parse::<u32>()) {
-        (Ok(w), Ok(h)) if w >= 16 && h >= 16 => Ok((w, h)),
-        _ => Err(format!("expected WxH with both at least 16, got `{s}`")),
     }
 }
 
@@ -128,7 +120,7 @@ struct TruthFile<'a> {
 }
 
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
-    let calib = load_calib(&common.calib)?;
+    let calib = common.calibration()?;
     let calib = match args.size {
         Some((w, h)) => calib.scaled_to(w, h),
         None => calib,
@@ -175,16 +167,6 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         }
         _ => bail!("say what to write: --png OUT for one view, or --out DIR for a trajectory frame folder"),
     }
-}
-
-/// The calibration file; when the default `calib/c310.toml` is not reachable from here, the
-/// identical built-in nominal C310 (with a warning).
-fn load_calib(path: &Path) -> anyhow::Result<Calibration> {
-    if path == Path::new("calib/c310.toml") && !path.exists() {
-        tracing::warn!("calib/c310.toml not found from this directory: using the built-in nominal C310 calibration");
-        return Ok(Calibration::nominal_c310());
-    }
-    Ok(Calibration::load(path)?)
 }
 
 fn write_folder(

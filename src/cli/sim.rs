@@ -14,7 +14,7 @@ use hal::Calibration;
 use mocks::World;
 use serde::Serialize;
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Debug, Clone, ClapArgs)]
 pub struct Args {
@@ -50,7 +50,7 @@ pub struct Args {
     #[arg(long, default_value_t = 180.0, value_name = "S")]
     pub max_time: f64,
     /// Render size WxH (the calibration's intrinsics are scaled to it).
-    #[arg(long, value_name = "WxH", value_parser = parse_size, default_value = "320x180")]
+    #[arg(long, value_name = "WxH", value_parser = |s: &str| super::parse_size(s, 64..=4096), default_value = "320x180")]
     pub size: (u32, u32),
     /// Pace the loop to the wall clock (default: as fast as possible).
     #[arg(long)]
@@ -64,15 +64,6 @@ pub struct Args {
     /// No progress lines on stderr.
     #[arg(long, short)]
     pub quiet: bool,
-}
-
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("size {s:?} must be WxH, e.g. 640x360"))?;
-    let p = |v: &str| v.trim().parse::<u32>().ok().filter(|&n| (64..=4096).contains(&n));
-    match (p(w), p(h)) {
-        (Some(w), Some(h)) => Ok((w, h)),
-        _ => Err(format!("size {s:?}: width and height must be whole numbers of pixels in 64..=4096")),
-    }
 }
 
 fn parse_range(s: &str) -> Result<(u64, u64), String> {
@@ -151,19 +142,9 @@ impl Aggregate {
     }
 }
 
-/// The calibration file; when the default `calib/c310.toml` is not reachable from here, the
-/// built-in nominal C310 (the same numbers) is used with a warning, so `flownav sim` runs anywhere.
-fn load_calib(path: &Path) -> anyhow::Result<Calibration> {
-    if path == Path::new("calib/c310.toml") && !path.exists() {
-        tracing::warn!("calib/c310.toml not found from this directory: using the built-in nominal C310 calibration");
-        return Ok(Calibration::nominal_c310());
-    }
-    Calibration::load(path).with_context(|| format!("loading the calibration {}", path.display()))
-}
-
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     let config = common.config()?;
-    let calib = load_calib(&common.calib)?.scaled_to(args.size.0, args.size.1);
+    let calib = common.calibration()?.scaled_to(args.size.0, args.size.1);
     let world = match &args.world {
         Some(path) => World::load(path)?,
         None => World::office(),

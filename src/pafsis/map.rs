@@ -417,11 +417,7 @@ fn check_action(
     }
 }
 
-/// Wraps an angle to (−π, π].
-pub fn wrap_angle(a: f64) -> f64 {
-    let w = a.rem_euclid(std::f64::consts::TAU);
-    if w > std::f64::consts::PI { w - std::f64::consts::TAU } else { w }
-}
+pub use hal::motion::wrap_angle;
 
 #[cfg(test)]
 mod tests {
@@ -511,11 +507,5 @@ mod tests {
             r#"{ do = "stop_at_door", door = "D1", side = "left" }"#,
         );
         assert!(err(&stop_first).contains("must directly follow a follow_corridor"));
-    }
-
-    #[test]
-    fn wrap_angle_range() {
-        assert!((wrap_angle(3.0 * std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-12);
-        assert!((wrap_angle(-std::f64::consts::FRAC_PI_2 * 3.0) - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
     }
 }
