@@ -15,6 +15,7 @@
 //! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
 //! | [`fnp_driver`] | the FNP/1 host driver over tokio-serial, reconnect/back-off, device-clock mapping |
 //! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
+//! | [`serial_task`] | the serial skeleton both base drivers share: port, command task, reconnects, link counters |
 //! | [`camera`] | the [`Camera`] trait and the monotonic clock frames are stamped with |
 //! | [`v4l2`] | the V4L2 camera (`/dev/videoN`), device listing, the `[camera]` config table |
 //! | [`mjpeg`] | MJPEG → luma (zune-jpeg), inserting the standard Huffman tables UVC frames omit |
@@ -31,6 +32,7 @@ pub mod image;
 pub mod kobuki;
 pub mod mjpeg;
 pub mod motion;
+pub mod serial_task;
 pub mod undistort;
 pub mod v4l2;
 pub mod yuyv;
