@@ -1,240 +1,29 @@
-//! Host driver for FNP/1 bases (`PROTOCOL.md`) over a serial port, and the serial plumbing the
-//! Kobuki driver shares: opening a port with clear errors, back-off, device-clock mapping.
+//! Host driver for FNP/1 bases (`PROTOCOL.md`) over a serial port.
 //!
 //! [`FnpBase::connect`] opens the port, says HELLO (setting the base's watchdog) and waits for
-//! INFO, then hands the port to a background tokio task that
+//! INFO, then hands the port to the shared serial task ([`crate::serial_task`]), which
 //! - sends the latest command at once and repeats it at `setpoint_rate_hz` (default 25 Hz),
 //!   zeroing a non-zero command that was not refreshed within `command_timeout`;
-//! - decodes ODOM and STATUS into [`BaseEvent`]s, with device timestamps mapped to host time
-//!   ([`ClockMapper`]) and cumulative encoder counts unwrapped to `i64`;
 //! - declares the link down when the port fails or nothing arrives for `silence_timeout`
 //!   (500 ms), then reopens the port and repeats the handshake with exponential back-off;
 //! - sends STOP when the driver is dropped (also synchronously from `Drop`, through a duplicate
 //!   of the port's descriptor, so the STOP goes out even when the runtime is shutting down).
+//!
+//! This module decodes ODOM and STATUS into [`BaseEvent`]s, with device timestamps mapped to
+//! host time ([`ClockMapper`]) and cumulative encoder counts unwrapped to `i64`.
 
-use crate::base::{BaseEvent, BaseStatus, LinkStats, MotorBase, host_now_ns};
-use crate::error::{Error, ErrorKind};
+use crate::base::{BaseEvent, BaseStatus, LinkStats, MotorBase};
 use crate::fnp::{self, Decoder, Direction, Packet};
 use crate::motion::{BodyVelocity, Odometry};
-use std::future::Future;
-use std::io::Write;
-use std::sync::atomic::{AtomicBool, AtomicU8, AtomicU64, Ordering};
+use crate::serial_task::{Protocol, SerialTask, Shared, TaskTiming, send_frame};
+use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
-use tokio::sync::{mpsc, watch};
-use tokio::time::{Instant, MissedTickBehavior};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite};
+use tokio::time::Instant;
 
-/// Errors of the serial base drivers (FNP/1 and Kobuki).
-#[derive(Debug, thiserror::Error)]
-pub enum SerialBaseError {
-    #[error("{port}: no such device; is the base plugged in? see README 'udev'")]
-    NoSuchPort { port: String },
-    #[error(
-        "{port}: permission denied; add your user to the 'dialout' group or install the udev rule (see README 'udev')"
-    )]
-    PermissionDenied { port: String },
-    #[error("{port}: cannot open the port: {message}")]
-    Open { port: String, message: String },
-    #[error(
-        "{port}: the base did not answer within {timeout_ms} ms at {baud} baud; check the baud rate, the cable \
-         (TX/RX crossed, common ground), that nothing else holds the port, and that the firmware speaks {protocol}"
-    )]
-    NoAnswer { port: String, timeout_ms: u64, baud: u32, protocol: &'static str },
-    #[error("{port}: the base speaks FNP/{version}, this driver FNP/{}", fnp::VERSION)]
-    Incompatible { port: String, version: u8 },
-    #[error("{port}: link lost ({reason}); reconnecting")]
-    Disconnected { port: String, reason: String },
-    #[error("{port}: the driver's background task has ended")]
-    Closed { port: String },
-    #[error("base configuration: {0}")]
-    Config(String),
-}
-
-impl Error for SerialBaseError {
-    fn kind(&self) -> ErrorKind {
-        match self {
-            SerialBaseError::NoSuchPort { .. } | SerialBaseError::Disconnected { .. } => ErrorKind::Disconnected,
-            SerialBaseError::Closed { .. } => ErrorKind::Disconnected,
-            SerialBaseError::NoAnswer { .. } => ErrorKind::Timeout,
-            SerialBaseError::Incompatible { .. } | SerialBaseError::Config(_) => ErrorKind::Unsupported,
-            SerialBaseError::PermissionDenied { .. } | SerialBaseError::Open { .. } => ErrorKind::Other,
-        }
-    }
-}
-
-/// Opens the byte stream a driver talks over: a serial port, or an in-memory pipe in tests.
-pub trait Connector: Send + 'static {
-    type Stream: AsyncRead + AsyncWrite + Unpin + Send + 'static;
-
-    /// Opens the stream (called again on every reconnect).
-    fn connect(&mut self) -> impl Future<Output = Result<Self::Stream, SerialBaseError>> + Send;
-
-    /// The port's name for messages.
-    fn port_name(&self) -> &str;
-
-    /// A blocking writer on the same device, used to send STOP from `Drop`.
-    fn emergency_writer(&self, _stream: &Self::Stream) -> Option<std::fs::File> {
-        None
-    }
-}
-
-/// A serial port (or pseudo-terminal) by path, via tokio-serial, 8N1.
-#[derive(Clone, Debug)]
-pub struct SerialConnector {
-    pub port: String,
-    pub baud: u32,
-}
-
-impl SerialConnector {
-    pub fn new(port: impl Into<String>, baud: u32) -> Self {
-        Self { port: port.into(), baud }
-    }
-}
-
-impl Connector for SerialConnector {
-    type Stream = tokio_serial::SerialStream;
-
-    async fn connect(&mut self) -> Result<Self::Stream, SerialBaseError> {
-        use tokio_serial::{SerialPort, SerialPortBuilderExt};
-        let port = self.port.clone();
-        if !std::path::Path::new(&port).exists() {
-            return Err(SerialBaseError::NoSuchPort { port });
-        }
-        let stream = tokio_serial::new(&port, self.baud).timeout(Duration::from_millis(100)).open_native_async();
-        let stream = stream.map_err(|e| match e.kind {
-            tokio_serial::ErrorKind::Io(std::io::ErrorKind::NotFound) => {
-                SerialBaseError::NoSuchPort { port: port.clone() }
-            }
-            tokio_serial::ErrorKind::Io(std::io::ErrorKind::PermissionDenied) => {
-                SerialBaseError::PermissionDenied { port: port.clone() }
-            }
-            tokio_serial::ErrorKind::NoDevice => {
-                SerialBaseError::Open { port: port.clone(), message: format!("{} (is another program using it?)", e) }
-            }
-            _ => SerialBaseError::Open { port: port.clone(), message: e.to_string() },
-        })?;
-        // Bytes the base sent before we opened are stale.
-        let _ = stream.clear(tokio_serial::ClearBuffer::Input);
-        Ok(stream)
-    }
-
-    fn port_name(&self) -> &str {
-        &self.port
-    }
-
-    fn emergency_writer(&self, stream: &Self::Stream) -> Option<std::fs::File> {
-        use std::os::fd::{AsRawFd, BorrowedFd};
-        // SAFETY: the descriptor belongs to `stream`, which is alive for the duration of this
-        // call; `try_clone_to_owned` duplicates it (dup(2)), so the returned file owns its own
-        // descriptor and stays valid after `stream` is closed.
-        let fd = unsafe { BorrowedFd::borrow_raw(stream.as_raw_fd()) };
-        fd.try_clone_to_owned().ok().map(std::fs::File::from)
-    }
-}
-
-/// Exponential back-off between reconnect attempts.
-#[derive(Clone, Copy, Debug)]
-pub struct Backoff {
-    pub initial: Duration,
-    pub max: Duration,
-}
-
-impl Default for Backoff {
-    fn default() -> Self {
-        Self { initial: Duration::from_millis(100), max: Duration::from_millis(3200) }
-    }
-}
-
-/// Maps a device clock (a wrapping counter) to the host's monotonic clock.
-///
-/// Each sample pairs a device time with the host time its frame arrived. The transport only
-/// ever delays a frame, so `host_rx - device_t` is the clock offset plus a non-negative latency;
-/// its minimum over the samples is the best offset estimate (the frame that was delayed least).
-/// The estimate may rise by at most `drift_ppm` of elapsed host time per sample, so it follows a
-/// device clock that runs slower than the host's; a faster device clock lowers the minimum by
-/// itself. The mapped time is `device_t + offset`, never later than the arrival time. A device
-/// clock that jumps back by more than half its wrap period (a reboot) restarts the estimate.
-#[derive(Clone, Debug)]
-pub struct ClockMapper {
-    modulus: u64,
-    unit_ns: u64,
-    drift_ppm: f64,
-    last_raw: Option<u64>,
-    device_ns: i128,
-    offset_ns: i128,
-    last_host_ns: u64,
-}
-
-impl ClockMapper {
-    /// `modulus`: the counter's wrap (2^32 for FNP/1 µs); `unit_ns`: ns per count (1000).
-    pub fn new(modulus: u64, unit_ns: u64) -> Self {
-        Self { modulus, unit_ns, drift_ppm: 200.0, last_raw: None, device_ns: 0, offset_ns: 0, last_host_ns: 0 }
-    }
-
-    /// The host time (ns) of device time `raw`, received at host time `host_rx_ns`.
-    pub fn map(&mut self, raw: u64, host_rx_ns: u64) -> u64 {
-        let raw = raw % self.modulus;
-        let sample_restart = match self.last_raw {
-            None => true,
-            Some(last) => {
-                let diff = (raw + self.modulus - last) % self.modulus;
-                if diff > self.modulus / 2 {
-                    true
-                } else {
-                    self.device_ns += i128::from(diff * self.unit_ns);
-                    false
-                }
-            }
-        };
-        self.last_raw = Some(raw);
-        let sample = i128::from(host_rx_ns) - self.device_ns;
-        if sample_restart {
-            self.device_ns = i128::from(raw * self.unit_ns);
-            self.offset_ns = i128::from(host_rx_ns) - self.device_ns;
-        } else {
-            let elapsed = host_rx_ns.saturating_sub(self.last_host_ns) as f64;
-            let allowed = self.offset_ns + (elapsed * self.drift_ppm * 1e-6) as i128;
-            self.offset_ns = sample.min(allowed);
-        }
-        self.last_host_ns = host_rx_ns;
-        (self.device_ns + self.offset_ns).clamp(0, i128::from(host_rx_ns)) as u64
-    }
-
-    /// The current offset estimate, host minus device, ns.
-    pub fn offset_ns(&self) -> i128 {
-        self.offset_ns
-    }
-}
-
-/// Unwraps a cumulative encoder count of `bits` bits into an `i64`.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct TickUnwrapper {
-    last: Option<u32>,
-    total: i64,
-}
-
-impl TickUnwrapper {
-    /// Adds the reading `raw` (the low `bits` bits count); the first reading after
-    /// [`Self::rebase`] sets the baseline and adds nothing.
-    pub fn update(&mut self, raw: u32, bits: u32) -> i64 {
-        let mask = if bits >= 32 { u32::MAX } else { (1u32 << bits) - 1 };
-        let raw = raw & mask;
-        if let Some(last) = self.last {
-            let diff = raw.wrapping_sub(last) & mask;
-            // Sign-extend the `bits`-bit difference.
-            let shift = 32 - bits.min(32);
-            self.total += i64::from(((diff << shift) as i32) >> shift);
-        }
-        self.last = Some(raw);
-        self.total
-    }
-
-    /// Forgets the last reading (after a reconnect the device may have restarted its counters).
-    pub fn rebase(&mut self) {
-        self.last = None;
-    }
-}
+// The shared serial types, under the paths that callers of this driver use.
+pub use crate::serial_task::{Backoff, ClockMapper, Connector, SerialBaseError, SerialConnector, TickUnwrapper};
 
 /// What the base said about itself in INFO.
 #[derive(Clone, Debug, PartialEq)]
@@ -300,75 +89,11 @@ enum Command {
     Drive { v_mm_s: i16, omega_mrad_s: i16 },
 }
 
-#[derive(Clone, Copy, Debug)]
-struct CommandMsg {
-    cmd: Command,
-    at: Instant,
-}
-
-/// Counters shared between a driver handle and its task.
-#[derive(Debug, Default)]
-pub(crate) struct Shared {
-    pub connected: AtomicBool,
-    pub frames_rx: AtomicU64,
-    pub frames_tx: AtomicU64,
-    pub dropped_rx: AtomicU64,
-    pub lost_rx: AtomicU64,
-    pub disconnects: AtomicU64,
-    pub reconnects: AtomicU64,
-    pub command_timeouts: AtomicU64,
-    pub events_dropped: AtomicU64,
-    pub next_seq: AtomicU8,
-    pub emergency: Mutex<Option<std::fs::File>>,
-}
-
-impl Shared {
-    /// `Ok` while the link is up; while the task reconnects, commands fail with `Disconnected`.
-    pub fn check_connected(&self, port: &str) -> Result<(), SerialBaseError> {
-        if self.connected.load(Ordering::Relaxed) {
-            Ok(())
-        } else {
-            Err(SerialBaseError::Disconnected { port: port.into(), reason: "reconnecting".into() })
-        }
-    }
-
-    pub fn stats(&self) -> LinkStats {
-        let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
-        LinkStats {
-            connected: self.connected.load(Ordering::Relaxed),
-            frames_rx: g(&self.frames_rx),
-            frames_tx: g(&self.frames_tx),
-            dropped_rx: g(&self.dropped_rx),
-            lost_rx: g(&self.lost_rx),
-            disconnects: g(&self.disconnects),
-            reconnects: g(&self.reconnects),
-            command_timeouts: g(&self.command_timeouts),
-            events_dropped: g(&self.events_dropped),
-        }
-    }
-
-    /// Writes `bytes` through the emergency descriptor, if there is one (best effort).
-    pub fn emergency_write(&self, bytes: &[u8]) {
-        if let Ok(mut guard) = self.emergency.lock()
-            && let Some(file) = guard.as_mut()
-        {
-            let _ = file.write_all(bytes);
-        }
-    }
-}
-
-type EventMsg = Result<BaseEvent, SerialBaseError>;
-const EVENT_QUEUE: usize = 1024;
-
 /// An FNP/1 base: the [`MotorBase`] over a serial port. See the module docs.
 pub struct FnpBase {
-    port: String,
+    link: SerialTask<Fnp>,
     info: DeviceInfo,
-    cmd_tx: watch::Sender<CommandMsg>,
-    events_rx: mpsc::Receiver<EventMsg>,
-    shared: Arc<Shared>,
     decode: Arc<Mutex<fnp::DecodeStats>>,
-    task: Option<tokio::task::JoinHandle<()>>,
 }
 
 impl FnpBase {
@@ -380,37 +105,26 @@ impl FnpBase {
     }
 
     /// Like [`Self::connect`] over any [`Connector`] (tests use in-memory pipes).
-    pub async fn connect_with<C: Connector>(cfg: FnpConfig, mut connector: C) -> Result<Self, SerialBaseError> {
+    pub async fn connect_with<C: Connector>(cfg: FnpConfig, connector: C) -> Result<Self, SerialBaseError> {
         cfg.validate()?;
-        let port = connector.port_name().to_string();
-        let shared = Arc::new(Shared::default());
-        let mut decoder = Decoder::new(Direction::BaseToHost);
-        let mut stream = connector.connect().await?;
-        let info = handshake(&mut stream, &cfg, &port, &shared, &mut decoder).await?;
-        *shared.emergency.lock().unwrap_or_else(|e| e.into_inner()) = connector.emergency_writer(&stream);
-        shared.connected.store(true, Ordering::Relaxed);
-        tracing::info!(port, name = %info.name, wheel_base_m = info.wheel_base_m, ticks_per_m = info.ticks_per_m, "FNP/1 base connected");
-
-        let (cmd_tx, cmd_rx) = watch::channel(CommandMsg { cmd: Command::Stop, at: Instant::now() });
-        let (events_tx, events_rx) = mpsc::channel(EVENT_QUEUE);
+        let timing = TaskTiming {
+            rate_hz: cfg.setpoint_rate_hz,
+            silence_timeout: cfg.silence_timeout,
+            command_timeout: cfg.command_timeout,
+            backoff: cfg.backoff,
+        };
+        let decoder = Decoder::new(Direction::BaseToHost);
         let decode = Arc::new(Mutex::new(decoder.stats()));
-        let link = Link {
+        let protocol = Fnp {
             cfg,
-            connector,
-            port: port.clone(),
-            shared: shared.clone(),
-            decode: decode.clone(),
-            cmd_rx,
-            events_tx,
             decoder,
+            decode: decode.clone(),
             clock: ClockMapper::new(1 << 32, 1000),
             left: TickUnwrapper::default(),
             right: TickUnwrapper::default(),
-            fresh_required: false,
-            timed_out_at: None,
         };
-        let task = tokio::spawn(link.run(stream));
-        Ok(Self { port, info, cmd_tx, events_rx, shared, decode, task: Some(task) })
+        let (link, info) = SerialTask::start(protocol, timing, connector).await?;
+        Ok(Self { link, info, decode })
     }
 
     /// What the base reported in INFO at the last handshake.
@@ -425,17 +139,7 @@ impl FnpBase {
 
     /// Sends STOP and waits until the background task has written it and ended.
     pub async fn close(mut self) {
-        self.send_command(Command::Stop);
-        if let Some(task) = self.task.take() {
-            // Replacing the sender closes the channel: the task sends STOP and ends.
-            let (dummy, _) = watch::channel(CommandMsg { cmd: Command::Stop, at: Instant::now() });
-            drop(std::mem::replace(&mut self.cmd_tx, dummy));
-            let _ = task.await;
-        }
-    }
-
-    fn send_command(&self, cmd: Command) {
-        self.cmd_tx.send_replace(CommandMsg { cmd, at: Instant::now() });
+        self.link.close().await;
     }
 }
 
@@ -443,74 +147,124 @@ impl MotorBase for FnpBase {
     type Error = SerialBaseError;
 
     fn set_velocity(&mut self, cmd: BodyVelocity) -> Result<(), SerialBaseError> {
-        self.shared.check_connected(&self.port)?;
         let v_mm_s = fnp::to_i16_clamped(cmd.v, 1000.0);
         let omega_mrad_s = fnp::to_i16_clamped(cmd.omega, 1000.0);
-        self.send_command(Command::Drive { v_mm_s, omega_mrad_s });
-        Ok(())
+        self.link.command(Command::Drive { v_mm_s, omega_mrad_s })
     }
 
     fn stop(&mut self) -> Result<(), SerialBaseError> {
-        self.send_command(Command::Stop);
-        self.shared.check_connected(&self.port)
+        self.link.stop()
     }
 
     async fn next_event(&mut self, timeout: Duration) -> Result<Option<BaseEvent>, SerialBaseError> {
-        next_event(&mut self.events_rx, timeout, &self.port).await
+        self.link.next_event(timeout).await
     }
 
     fn link_stats(&self) -> LinkStats {
-        self.shared.stats()
+        self.link.link_stats()
     }
 }
 
-pub(crate) async fn next_event(
-    rx: &mut mpsc::Receiver<EventMsg>,
-    timeout: Duration,
-    port: &str,
-) -> Result<Option<BaseEvent>, SerialBaseError> {
-    match tokio::time::timeout(timeout, rx.recv()).await {
-        Err(_) => Ok(None),
-        Ok(Some(Ok(ev))) => Ok(Some(ev)),
-        Ok(Some(Err(e))) => Err(e),
-        Ok(None) => Err(SerialBaseError::Closed { port: port.to_string() }),
-    }
+/// FNP/1 as the serial task speaks it: SETPOINT/STOP out, ODOM and STATUS in.
+struct Fnp {
+    cfg: FnpConfig,
+    decoder: Decoder,
+    /// The decoder's counters, shared with [`FnpBase::decode_stats`].
+    decode: Arc<Mutex<fnp::DecodeStats>>,
+    clock: ClockMapper,
+    left: TickUnwrapper,
+    right: TickUnwrapper,
 }
 
-impl Drop for FnpBase {
-    fn drop(&mut self) {
-        // The task sends STOP when it sees the command channel close; this synchronous STOP covers
-        // a runtime that is shutting down and will not run the task again.
-        let seq = self.shared.next_seq.fetch_add(1, Ordering::Relaxed);
-        self.shared.emergency_write(&fnp::encode(seq, &Packet::Stop));
-    }
-}
+impl Protocol for Fnp {
+    type Command = Command;
+    type Hello = DeviceInfo;
+    const IDLE: Command = Command::Stop;
+    const NAME: &'static str = "base";
 
-async fn send_packet<S: AsyncWrite + Unpin>(
-    s: &mut S,
-    shared: &Shared,
-    packet: &Packet,
-    limit: Duration,
-) -> Result<(), String> {
-    let seq = shared.next_seq.fetch_add(1, Ordering::Relaxed);
-    let bytes = fnp::encode(seq, packet);
-    match tokio::time::timeout(limit, async {
-        s.write_all(&bytes).await?;
-        s.flush().await
-    })
-    .await
-    {
-        Ok(Ok(())) => {
-            shared.frames_tx.fetch_add(1, Ordering::Relaxed);
-            Ok(())
+    fn is_moving(cmd: &Command) -> bool {
+        matches!(*cmd, Command::Drive { v_mm_s, omega_mrad_s } if (v_mm_s, omega_mrad_s) != (0, 0))
+    }
+
+    fn command_frame(cmd: &Command, seq: u8) -> Vec<u8> {
+        match *cmd {
+            Command::Stop => fnp::encode(seq, &Packet::Stop),
+            Command::Drive { v_mm_s, omega_mrad_s } => fnp::encode(seq, &Packet::Setpoint { v_mm_s, omega_mrad_s }),
         }
-        Ok(Err(e)) => Err(format!("write failed: {e}")),
-        Err(_) => Err(format!("write blocked for {} ms", limit.as_millis())),
+    }
+
+    fn stop_frame(seq: u8) -> Vec<u8> {
+        fnp::encode(seq, &Packet::Stop)
+    }
+
+    fn expired_frame(seq: u8) -> Vec<u8> {
+        fnp::encode(seq, &Packet::Setpoint { v_mm_s: 0, omega_mrad_s: 0 })
+    }
+
+    async fn handshake<S: AsyncRead + AsyncWrite + Unpin + Send>(
+        &mut self,
+        s: &mut S,
+        port: &str,
+        shared: &Shared,
+    ) -> Result<DeviceInfo, SerialBaseError> {
+        // Bytes of a previous connection are not the start of this one's frames.
+        self.decoder.resync();
+        handshake(s, &self.cfg, port, shared, &mut self.decoder).await
+    }
+
+    fn on_connected(&mut self, info: &DeviceInfo, reconnect: bool, port: &str, _push: &mut impl FnMut(BaseEvent)) {
+        if reconnect {
+            self.left.rebase();
+            self.right.rebase();
+            tracing::info!(port, name = %info.name, "FNP/1 base reconnected");
+        } else {
+            *self.decode.lock().unwrap_or_else(|e| e.into_inner()) = self.decoder.stats();
+            tracing::info!(port, name = %info.name, wheel_base_m = info.wheel_base_m, ticks_per_m = info.ticks_per_m, "FNP/1 base connected");
+        }
+    }
+
+    fn on_bytes(&mut self, bytes: &[u8], host_ns: u64, port: &str, shared: &Shared, push: &mut impl FnMut(BaseEvent)) {
+        let mut frames = Vec::new();
+        self.decoder.feed(bytes, |f| frames.push(f));
+        for f in frames {
+            match f.packet {
+                Packet::Odom { t_us, left_ticks, right_ticks, v_mm_s, omega_mrad_s } => {
+                    let t_ns = self.clock.map(u64::from(t_us), host_ns);
+                    let odom = Odometry {
+                        t_ns,
+                        velocity: BodyVelocity::new(f64::from(v_mm_s) / 1000.0, f64::from(omega_mrad_s) / 1000.0),
+                        left_ticks: self.left.update(left_ticks as u32, 32),
+                        right_ticks: self.right.update(right_ticks as u32, 32),
+                    };
+                    push(BaseEvent::Odometry(odom));
+                }
+                Packet::Status { battery_mv, flags, .. } => {
+                    let status = BaseStatus {
+                        t_ns: host_ns,
+                        battery_v: Some(f64::from(battery_mv) / 1000.0),
+                        bumper: flags & fnp::flags::BUMPER != 0,
+                        estop: flags & fnp::flags::ESTOP != 0,
+                        stopped_by_watchdog: flags & fnp::flags::WATCHDOG_STOP != 0,
+                        motor_fault: flags & fnp::flags::MOTOR_FAULT != 0,
+                        cliff: false,
+                        wheel_drop: false,
+                    };
+                    push(BaseEvent::Status(status));
+                }
+                Packet::Info { .. } => tracing::debug!(port, "unsolicited INFO ignored"),
+                _ => {}
+            }
+        }
+        let st = self.decoder.stats();
+        shared.frames_rx.store(st.frames, Ordering::Relaxed);
+        shared.dropped_rx.store(st.dropped(), Ordering::Relaxed);
+        shared.lost_rx.store(st.lost, Ordering::Relaxed);
+        *self.decode.lock().unwrap_or_else(|e| e.into_inner()) = st;
     }
 }
 
 /// HELLO, then wait for INFO; HELLO is repeated four times within `handshake_timeout`.
-async fn handshake<S: AsyncRead + AsyncWrite + Unpin>(
+async fn handshake<S: AsyncRead + AsyncWrite + Unpin + Send>(
     s: &mut S,
     cfg: &FnpConfig,
     port: &str,
@@ -522,9 +276,8 @@ async fn handshake<S: AsyncRead + AsyncWrite + Unpin>(
     let mut buf = [0u8; 256];
     let lost = |reason: String| SerialBaseError::Disconnected { port: port.to_string(), reason };
     loop {
-        send_packet(s, shared, &Packet::Hello { watchdog_ms: cfg.watchdog_ms }, cfg.handshake_timeout)
-            .await
-            .map_err(lost)?;
+        let hello = fnp::encode(shared.take_seq(), &Packet::Hello { watchdog_ms: cfg.watchdog_ms });
+        send_frame(s, shared, &hello, cfg.handshake_timeout).await.map_err(lost)?;
         let until = (Instant::now() + resend).min(deadline);
         loop {
             let n = match tokio::time::timeout_at(until, s.read(&mut buf)).await {
@@ -562,210 +315,13 @@ async fn handshake<S: AsyncRead + AsyncWrite + Unpin>(
     }
 }
 
-enum SessionEnd {
-    Shutdown,
-    Lost(String),
-}
-
-/// The background task's state.
-struct Link<C: Connector> {
-    cfg: FnpConfig,
-    connector: C,
-    port: String,
-    shared: Arc<Shared>,
-    decode: Arc<Mutex<fnp::DecodeStats>>,
-    cmd_rx: watch::Receiver<CommandMsg>,
-    events_tx: mpsc::Sender<EventMsg>,
-    decoder: Decoder,
-    clock: ClockMapper,
-    left: TickUnwrapper,
-    right: TickUnwrapper,
-    /// After a reconnect: send STOP until the caller commands again.
-    fresh_required: bool,
-    /// The command whose staleness was last counted.
-    timed_out_at: Option<Instant>,
-}
-
-impl<C: Connector> Link<C> {
-    async fn run(mut self, first: C::Stream) {
-        let mut stream = first;
-        loop {
-            match self.session(&mut stream).await {
-                SessionEnd::Shutdown => return,
-                SessionEnd::Lost(reason) => {
-                    self.shared.connected.store(false, Ordering::Relaxed);
-                    self.shared.disconnects.fetch_add(1, Ordering::Relaxed);
-                    *self.shared.emergency.lock().unwrap_or_else(|e| e.into_inner()) = None;
-                    let err = SerialBaseError::Disconnected { port: self.port.clone(), reason };
-                    tracing::warn!("{err}");
-                    self.push(Err(err));
-                }
-            }
-            drop(stream);
-            match self.reconnect().await {
-                Some(s) => stream = s,
-                None => return,
-            }
-        }
-    }
-
-    fn push(&self, ev: EventMsg) {
-        if let Err(mpsc::error::TrySendError::Full(_)) = self.events_tx.try_send(ev) {
-            self.shared.events_dropped.fetch_add(1, Ordering::Relaxed);
-        }
-    }
-
-    fn current_packet(&mut self) -> Packet {
-        if self.fresh_required {
-            return Packet::Stop;
-        }
-        let msg = *self.cmd_rx.borrow();
-        match msg.cmd {
-            Command::Stop => Packet::Stop,
-            Command::Drive { v_mm_s, omega_mrad_s } => {
-                let stale = self.cfg.command_timeout.is_some_and(|t| msg.at.elapsed() > t);
-                if stale && (v_mm_s, omega_mrad_s) != (0, 0) {
-                    if self.timed_out_at != Some(msg.at) {
-                        self.timed_out_at = Some(msg.at);
-                        self.shared.command_timeouts.fetch_add(1, Ordering::Relaxed);
-                        tracing::warn!(
-                            port = self.port,
-                            "no new command within the command timeout: stopping the base"
-                        );
-                    }
-                    Packet::Setpoint { v_mm_s: 0, omega_mrad_s: 0 }
-                } else {
-                    Packet::Setpoint { v_mm_s, omega_mrad_s }
-                }
-            }
-        }
-    }
-
-    async fn session(&mut self, s: &mut C::Stream) -> SessionEnd {
-        let period = Duration::from_secs_f64(1.0 / self.cfg.setpoint_rate_hz);
-        let mut tick = tokio::time::interval(period);
-        tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
-        let silence = self.cfg.silence_timeout;
-        let mut last_rx = Instant::now();
-        let mut buf = [0u8; 512];
-        loop {
-            tokio::select! {
-                biased;
-                changed = self.cmd_rx.changed() => {
-                    if changed.is_err() {
-                        let _ = send_packet(s, &self.shared, &Packet::Stop, silence).await;
-                        return SessionEnd::Shutdown;
-                    }
-                    self.fresh_required = false;
-                    let p = self.current_packet();
-                    if let Err(reason) = send_packet(s, &self.shared, &p, silence).await {
-                        return SessionEnd::Lost(reason);
-                    }
-                    tick.reset();
-                }
-                n = s.read(&mut buf) => match n {
-                    Ok(0) => return SessionEnd::Lost("the port was closed".into()),
-                    Err(e) => return SessionEnd::Lost(format!("read failed: {e}")),
-                    Ok(n) => {
-                        last_rx = Instant::now();
-                        self.on_bytes(&buf[..n]);
-                    }
-                },
-                _ = tick.tick() => {
-                    let p = self.current_packet();
-                    if let Err(reason) = send_packet(s, &self.shared, &p, silence).await {
-                        return SessionEnd::Lost(reason);
-                    }
-                }
-                _ = tokio::time::sleep_until(last_rx + silence) => {
-                    return SessionEnd::Lost(format!("nothing received for {} ms", silence.as_millis()));
-                }
-            }
-        }
-    }
-
-    fn on_bytes(&mut self, bytes: &[u8]) {
-        let host_ns = host_now_ns();
-        let mut frames = Vec::new();
-        self.decoder.feed(bytes, |f| frames.push(f));
-        for f in frames {
-            match f.packet {
-                Packet::Odom { t_us, left_ticks, right_ticks, v_mm_s, omega_mrad_s } => {
-                    let t_ns = self.clock.map(u64::from(t_us), host_ns);
-                    let odom = Odometry {
-                        t_ns,
-                        velocity: BodyVelocity::new(f64::from(v_mm_s) / 1000.0, f64::from(omega_mrad_s) / 1000.0),
-                        left_ticks: self.left.update(left_ticks as u32, 32),
-                        right_ticks: self.right.update(right_ticks as u32, 32),
-                    };
-                    self.push(Ok(BaseEvent::Odometry(odom)));
-                }
-                Packet::Status { battery_mv, flags, .. } => {
-                    let status = BaseStatus {
-                        t_ns: host_ns,
-                        battery_v: Some(f64::from(battery_mv) / 1000.0),
-                        bumper: flags & fnp::flags::BUMPER != 0,
-                        estop: flags & fnp::flags::ESTOP != 0,
-                        stopped_by_watchdog: flags & fnp::flags::WATCHDOG_STOP != 0,
-                        motor_fault: flags & fnp::flags::MOTOR_FAULT != 0,
-                        cliff: false,
-                        wheel_drop: false,
-                    };
-                    self.push(Ok(BaseEvent::Status(status)));
-                }
-                Packet::Info { .. } => tracing::debug!(port = self.port, "unsolicited INFO ignored"),
-                _ => {}
-            }
-        }
-        let st = self.decoder.stats();
-        self.shared.frames_rx.store(st.frames, Ordering::Relaxed);
-        self.shared.dropped_rx.store(st.dropped(), Ordering::Relaxed);
-        self.shared.lost_rx.store(st.lost, Ordering::Relaxed);
-        *self.decode.lock().unwrap_or_else(|e| e.into_inner()) = st;
-    }
-
-    /// Reopens the port with exponential back-off until the handshake succeeds; `None` when the
-    /// driver was dropped meanwhile.
-    async fn reconnect(&mut self) -> Option<C::Stream> {
-        let mut delay = self.cfg.backoff.initial;
-        loop {
-            let sleep = tokio::time::sleep(delay);
-            tokio::pin!(sleep);
-            loop {
-                tokio::select! {
-                    _ = &mut sleep => break,
-                    changed = self.cmd_rx.changed() => if changed.is_err() { return None },
-                }
-            }
-            match self.connector.connect().await {
-                Ok(mut s) => {
-                    self.decoder.resync();
-                    match handshake(&mut s, &self.cfg, &self.port, &self.shared, &mut self.decoder).await {
-                        Ok(info) => {
-                            *self.shared.emergency.lock().unwrap_or_else(|e| e.into_inner()) =
-                                self.connector.emergency_writer(&s);
-                            self.shared.connected.store(true, Ordering::Relaxed);
-                            self.shared.reconnects.fetch_add(1, Ordering::Relaxed);
-                            self.left.rebase();
-                            self.right.rebase();
-                            self.fresh_required = true;
-                            tracing::info!(port = self.port, name = %info.name, "FNP/1 base reconnected");
-                            return Some(s);
-                        }
-                        Err(e) => tracing::debug!("reconnect: {e}"),
-                    }
-                }
-                Err(e) => tracing::debug!("reconnect: {e}"),
-            }
-            delay = (delay * 2).min(self.cfg.backoff.max);
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::{Error, ErrorKind};
+    use tokio::io::AsyncWriteExt;
     use tokio::io::DuplexStream;
+    use tokio::sync::mpsc;
 
     /// Hands out pre-made in-memory pipes, one per connect; fails like a missing port when empty.
     struct PipeConnector(mpsc::UnboundedReceiver<DuplexStream>);
@@ -925,36 +481,5 @@ mod tests {
         base.set_velocity(BodyVelocity::new(0.2, 0.0)).unwrap();
         tokio::time::sleep(Duration::from_millis(100)).await;
         assert_eq!(log.lock().unwrap().last().unwrap().1, Packet::Setpoint { v_mm_s: 200, omega_mrad_s: 0 });
-    }
-
-    #[test]
-    fn clock_mapper_takes_the_least_delayed_sample_and_unwraps() {
-        let mut m = ClockMapper::new(1 << 32, 1000);
-        // Device clock = host clock - 5 s; latencies 3, 1, 2 ms.
-        let host = |dev_us: u64, lat_ms: u64| dev_us * 1000 + 5_000_000_000 + lat_ms * 1_000_000;
-        assert_eq!(m.map(1_000_000, host(1_000_000, 3)), host(1_000_000, 3));
-        assert_eq!(m.map(1_020_000, host(1_020_000, 1)), host(1_020_000, 1));
-        // A later, more delayed sample keeps the 1 ms estimate (plus the 200 ppm drift allowance).
-        assert_eq!(m.map(1_040_000, host(1_040_000, 2)), host(1_040_000, 1) + 4_200);
-        // Wrap of the u32 µs counter: device time continues past 2^32 µs.
-        let before = (1u64 << 32) - 10_000;
-        let mut m = ClockMapper::new(1 << 32, 1000);
-        let a = m.map(before, 10_000_000_000);
-        let b = m.map(10_000, 10_000_000_000 + 20_000_000);
-        assert_eq!(b - a, 20_000_000);
-        // A reboot (clock far back) restarts the estimate.
-        let c = m.map(5, 10_100_000_000);
-        assert_eq!(c, 10_100_000_000);
-    }
-
-    #[test]
-    fn tick_unwrapper_handles_wrap() {
-        let mut u = TickUnwrapper::default();
-        assert_eq!(u.update(65_530, 16), 0);
-        assert_eq!(u.update(4, 16), 10);
-        assert_eq!(u.update(65_534, 16), 4);
-        let mut u = TickUnwrapper::default();
-        u.update(i32::MAX as u32, 32);
-        assert_eq!(u.update(i32::MIN as u32, 32), 1);
     }
 }

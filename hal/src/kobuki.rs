@@ -16,19 +16,19 @@
 //!
 //! The firmware has no command watchdog: it keeps driving at the last command forever. The
 //! driver therefore repeats the command at a fixed rate, sends zero when the caller has not
-//! refreshed a non-zero command within `command_timeout`, and sends zero on drop and on exit.
+//! refreshed a non-zero command within `command_timeout`, and sends zero on drop and on exit
+//! (the shared serial task, [`crate::serial_task`], does all three).
 
 use crate::base::{BaseEvent, BaseStatus, LinkStats, MotorBase, host_now_ns};
-use crate::fnp_driver::{
-    Backoff, ClockMapper, Connector, SerialBaseError, SerialConnector, Shared, TickUnwrapper, next_event,
-};
 use crate::motion::{BodyVelocity, Odometry};
-use std::sync::Arc;
+use crate::serial_task::{
+    Backoff, ClockMapper, Connector, Protocol, SerialBaseError, SerialConnector, SerialTask, Shared, TaskTiming,
+    TickUnwrapper,
+};
 use std::sync::atomic::Ordering;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::sync::{mpsc, watch};
-use tokio::time::{Instant, MissedTickBehavior};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite};
+use tokio::time::Instant;
 
 /// Distance between the wheels, m (`bias` in kobuki_core).
 pub const WHEEL_BASE_M: f64 = 0.23;
@@ -308,21 +308,9 @@ impl KobukiConfig {
     }
 }
 
-#[derive(Clone, Copy, Debug)]
-struct CommandMsg {
-    v: BodyVelocity,
-    at: Instant,
-}
-
-type EventMsg = Result<BaseEvent, SerialBaseError>;
-
 /// A Kobuki base: the [`MotorBase`] over its serial port. See the module docs.
 pub struct KobukiBase {
-    port: String,
-    cmd_tx: watch::Sender<CommandMsg>,
-    events_rx: mpsc::Receiver<EventMsg>,
-    shared: Arc<Shared>,
-    task: Option<tokio::task::JoinHandle<()>>,
+    link: SerialTask<Kobuki>,
 }
 
 impl KobukiBase {
@@ -333,52 +321,35 @@ impl KobukiBase {
     }
 
     /// Like [`Self::connect`] over any [`Connector`].
-    pub async fn connect_with<C: Connector>(cfg: KobukiConfig, mut connector: C) -> Result<Self, SerialBaseError> {
+    pub async fn connect_with<C: Connector>(cfg: KobukiConfig, connector: C) -> Result<Self, SerialBaseError> {
         if !(10.0..=1000.0).contains(&cfg.command_rate_hz) {
             return Err(SerialBaseError::Config(format!(
                 "command_rate_hz = {} must be in 10..=1000",
                 cfg.command_rate_hz
             )));
         }
-        let port = connector.port_name().to_string();
-        let shared = Arc::new(Shared::default());
-        let mut decoder = KobukiDecoder::new();
-        let mut stream = connector.connect().await?;
-        let pending = wait_for_sensors(&mut stream, &cfg, &port, &mut decoder).await?;
-        *shared.emergency.lock().unwrap_or_else(|e| e.into_inner()) = connector.emergency_writer(&stream);
-        shared.connected.store(true, Ordering::Relaxed);
-        tracing::info!(port, "Kobuki base connected");
-        let (cmd_tx, cmd_rx) = watch::channel(CommandMsg { v: BodyVelocity::ZERO, at: Instant::now() });
-        let (events_tx, events_rx) = mpsc::channel(1024);
-        let mut link = KobukiLink {
+        let timing = TaskTiming {
+            rate_hz: cfg.command_rate_hz,
+            silence_timeout: cfg.silence_timeout,
+            command_timeout: Some(cfg.command_timeout),
+            backoff: cfg.backoff,
+        };
+        let protocol = Kobuki {
             cfg,
-            connector,
-            port: port.clone(),
-            shared: shared.clone(),
-            cmd_rx,
-            events_tx,
-            decoder,
+            decoder: KobukiDecoder::new(),
             clock: ClockMapper::new(1 << 16, 1_000_000),
             left: TickUnwrapper::default(),
             right: TickUnwrapper::default(),
             last: None,
             last_status: None,
-            fresh_required: false,
-            timed_out_at: None,
         };
-        link.on_sensors(pending, host_now_ns());
-        let task = tokio::spawn(link.run(stream));
-        Ok(Self { port, cmd_tx, events_rx, shared, task: Some(task) })
+        let (link, _) = SerialTask::start(protocol, timing, connector).await?;
+        Ok(Self { link })
     }
 
     /// Sends a zero command and waits until the background task has written it and ended.
     pub async fn close(mut self) {
-        self.cmd_tx.send_replace(CommandMsg { v: BodyVelocity::ZERO, at: Instant::now() });
-        if let Some(task) = self.task.take() {
-            let (dummy, _) = watch::channel(CommandMsg { v: BodyVelocity::ZERO, at: Instant::now() });
-            drop(std::mem::replace(&mut self.cmd_tx, dummy));
-            let _ = task.await;
-        }
+        self.link.close().await;
     }
 }
 
@@ -386,54 +357,135 @@ impl MotorBase for KobukiBase {
     type Error = SerialBaseError;
 
     fn set_velocity(&mut self, cmd: BodyVelocity) -> Result<(), SerialBaseError> {
-        self.shared.check_connected(&self.port)?;
-        self.cmd_tx.send_replace(CommandMsg { v: cmd, at: Instant::now() });
-        Ok(())
+        self.link.command(cmd)
     }
 
     fn stop(&mut self) -> Result<(), SerialBaseError> {
-        self.cmd_tx.send_replace(CommandMsg { v: BodyVelocity::ZERO, at: Instant::now() });
-        self.shared.check_connected(&self.port)
+        self.link.stop()
     }
 
     async fn next_event(&mut self, timeout: Duration) -> Result<Option<BaseEvent>, SerialBaseError> {
-        next_event(&mut self.events_rx, timeout, &self.port).await
+        self.link.next_event(timeout).await
     }
 
     fn link_stats(&self) -> LinkStats {
-        self.shared.stats()
+        self.link.link_stats()
     }
 }
 
-impl Drop for KobukiBase {
-    fn drop(&mut self) {
-        self.shared.emergency_write(&encode_base_control(0, 0));
-    }
+/// The Kobuki protocol as the serial task speaks it: Base Control out, Basic Sensor Data in.
+struct Kobuki {
+    cfg: KobukiConfig,
+    decoder: KobukiDecoder,
+    clock: ClockMapper,
+    left: TickUnwrapper,
+    right: TickUnwrapper,
+    /// Previous sample (device ms, left, right ticks) for the velocity estimate.
+    last: Option<(u16, i64, i64)>,
+    last_status: Option<(BaseStatus, u64)>,
 }
 
-async fn send<S: tokio::io::AsyncWrite + Unpin>(
-    s: &mut S,
-    shared: &Shared,
-    limit: Duration,
-    frame: &[u8],
-) -> Result<(), String> {
-    match tokio::time::timeout(limit, async {
-        s.write_all(frame).await?;
-        s.flush().await
-    })
-    .await
-    {
-        Ok(Ok(())) => {
-            shared.frames_tx.fetch_add(1, Ordering::Relaxed);
-            Ok(())
+impl Kobuki {
+    fn on_sensors(&mut self, cs: CoreSensors, host_ns: u64, push: &mut impl FnMut(BaseEvent)) {
+        let t_ns = self.clock.map(u64::from(cs.timestamp_ms), host_ns);
+        let l = self.left.update(u32::from(cs.left_encoder), 16);
+        let r = self.right.update(u32::from(cs.right_encoder), 16);
+        let mut velocity = BodyVelocity::ZERO;
+        if let Some((t0, l0, r0)) = self.last {
+            let dt = f64::from(cs.timestamp_ms.wrapping_sub(t0)) / 1000.0;
+            if dt > 0.0 {
+                let dl = (l - l0) as f64 / TICKS_PER_M / dt;
+                let dr = (r - r0) as f64 / TICKS_PER_M / dt;
+                velocity = BodyVelocity::new(0.5 * (dl + dr), (dr - dl) / WHEEL_BASE_M);
+            }
         }
-        Ok(Err(e)) => Err(format!("write failed: {e}")),
-        Err(_) => Err("write blocked".into()),
+        if self.last.is_none_or(|(t0, ..)| t0 != cs.timestamp_ms) {
+            self.last = Some((cs.timestamp_ms, l, r));
+        }
+        push(BaseEvent::Odometry(Odometry { t_ns, velocity, left_ticks: l, right_ticks: r }));
+        let status = BaseStatus {
+            t_ns: host_ns,
+            battery_v: Some(f64::from(cs.battery_dv) / 10.0),
+            bumper: cs.bumper != 0,
+            estop: false,
+            stopped_by_watchdog: false,
+            motor_fault: cs.over_current != 0,
+            cliff: cs.cliff != 0,
+            wheel_drop: cs.wheel_drop != 0,
+        };
+        let due = match self.last_status {
+            None => true,
+            Some((prev, at)) => {
+                let same = BaseStatus { t_ns: prev.t_ns, ..status } == prev;
+                !same || host_ns.saturating_sub(at) >= self.cfg.status_period.as_nanos() as u64
+            }
+        };
+        if due {
+            self.last_status = Some((status, host_ns));
+            push(BaseEvent::Status(status));
+        }
+    }
+}
+
+impl Protocol for Kobuki {
+    type Command = BodyVelocity;
+    type Hello = CoreSensors;
+    const IDLE: BodyVelocity = BodyVelocity::ZERO;
+    const NAME: &'static str = "Kobuki";
+
+    fn is_moving(v: &BodyVelocity) -> bool {
+        *v != BodyVelocity::ZERO
+    }
+
+    fn command_frame(v: &BodyVelocity, _seq: u8) -> Vec<u8> {
+        let (speed, radius) = velocity_command(v.v, v.omega, WHEEL_BASE_M);
+        encode_base_control(speed, radius)
+    }
+
+    fn stop_frame(_seq: u8) -> Vec<u8> {
+        encode_base_control(0, 0)
+    }
+
+    fn expired_frame(_seq: u8) -> Vec<u8> {
+        encode_base_control(0, 0)
+    }
+
+    async fn handshake<S: AsyncRead + AsyncWrite + Unpin + Send>(
+        &mut self,
+        s: &mut S,
+        port: &str,
+        _shared: &Shared,
+    ) -> Result<CoreSensors, SerialBaseError> {
+        wait_for_sensors(s, &self.cfg, port, &mut self.decoder).await
+    }
+
+    fn on_connected(&mut self, cs: &CoreSensors, reconnect: bool, port: &str, push: &mut impl FnMut(BaseEvent)) {
+        if reconnect {
+            self.left.rebase();
+            self.right.rebase();
+            self.last = None;
+            self.on_sensors(*cs, host_now_ns(), push);
+            tracing::info!(port, "Kobuki base reconnected");
+        } else {
+            tracing::info!(port, "Kobuki base connected");
+            self.on_sensors(*cs, host_now_ns(), push);
+        }
+    }
+
+    fn on_bytes(&mut self, bytes: &[u8], host_ns: u64, _port: &str, shared: &Shared, push: &mut impl FnMut(BaseEvent)) {
+        for payload in self.decoder.feed(bytes) {
+            if let Some(cs) = self.decoder.core_sensors(&payload) {
+                self.on_sensors(cs, host_ns, push);
+            }
+        }
+        let st = self.decoder.stats();
+        shared.frames_rx.store(st.frames, Ordering::Relaxed);
+        shared.dropped_rx.store(st.bad_checksum + st.malformed, Ordering::Relaxed);
     }
 }
 
 /// Reads until the first Basic Sensor Data arrives.
-async fn wait_for_sensors<S: tokio::io::AsyncRead + Unpin>(
+async fn wait_for_sensors<S: AsyncRead + Unpin>(
     s: &mut S,
     cfg: &KobukiConfig,
     port: &str,
@@ -461,173 +513,6 @@ async fn wait_for_sensors<S: tokio::io::AsyncRead + Unpin>(
                     }
                 }
             }
-        }
-    }
-}
-
-struct KobukiLink<C: Connector> {
-    cfg: KobukiConfig,
-    connector: C,
-    port: String,
-    shared: Arc<Shared>,
-    cmd_rx: watch::Receiver<CommandMsg>,
-    events_tx: mpsc::Sender<EventMsg>,
-    decoder: KobukiDecoder,
-    clock: ClockMapper,
-    left: TickUnwrapper,
-    right: TickUnwrapper,
-    /// Previous sample (device ms, left, right ticks) for the velocity estimate.
-    last: Option<(u16, i64, i64)>,
-    last_status: Option<(BaseStatus, u64)>,
-    fresh_required: bool,
-    timed_out_at: Option<Instant>,
-}
-
-impl<C: Connector> KobukiLink<C> {
-    fn push(&self, ev: EventMsg) {
-        if let Err(mpsc::error::TrySendError::Full(_)) = self.events_tx.try_send(ev) {
-            self.shared.events_dropped.fetch_add(1, Ordering::Relaxed);
-        }
-    }
-
-    fn current_frame(&mut self) -> Vec<u8> {
-        let msg = *self.cmd_rx.borrow();
-        let mut v = if self.fresh_required { BodyVelocity::ZERO } else { msg.v };
-        if v != BodyVelocity::ZERO && msg.at.elapsed() > self.cfg.command_timeout {
-            if self.timed_out_at != Some(msg.at) {
-                self.timed_out_at = Some(msg.at);
-                self.shared.command_timeouts.fetch_add(1, Ordering::Relaxed);
-                tracing::warn!(port = self.port, "no new command within the command timeout: stopping the Kobuki");
-            }
-            v = BodyVelocity::ZERO;
-        }
-        let (speed, radius) = velocity_command(v.v, v.omega, WHEEL_BASE_M);
-        encode_base_control(speed, radius)
-    }
-
-    fn on_sensors(&mut self, cs: CoreSensors, host_ns: u64) {
-        let t_ns = self.clock.map(u64::from(cs.timestamp_ms), host_ns);
-        let l = self.left.update(u32::from(cs.left_encoder), 16);
-        let r = self.right.update(u32::from(cs.right_encoder), 16);
-        let mut velocity = BodyVelocity::ZERO;
-        if let Some((t0, l0, r0)) = self.last {
-            let dt = f64::from(cs.timestamp_ms.wrapping_sub(t0)) / 1000.0;
-            if dt > 0.0 {
-                let dl = (l - l0) as f64 / TICKS_PER_M / dt;
-                let dr = (r - r0) as f64 / TICKS_PER_M / dt;
-                velocity = BodyVelocity::new(0.5 * (dl + dr), (dr - dl) / WHEEL_BASE_M);
-            }
-        }
-        if self.last.is_none_or(|(t0, ..)| t0 != cs.timestamp_ms) {
-            self.last = Some((cs.timestamp_ms, l, r));
-        }
-        self.push(Ok(BaseEvent::Odometry(Odometry { t_ns, velocity, left_ticks: l, right_ticks: r })));
-        let status = BaseStatus {
-            t_ns: host_ns,
-            battery_v: Some(f64::from(cs.battery_dv) / 10.0),
-            bumper: cs.bumper != 0,
-            estop: false,
-            stopped_by_watchdog: false,
-            motor_fault: cs.over_current != 0,
-            cliff: cs.cliff != 0,
-            wheel_drop: cs.wheel_drop != 0,
-        };
-        let due = match self.last_status {
-            None => true,
-            Some((prev, at)) => {
-                let same = BaseStatus { t_ns: prev.t_ns, ..status } == prev;
-                !same || host_ns.saturating_sub(at) >= self.cfg.status_period.as_nanos() as u64
-            }
-        };
-        if due {
-            self.last_status = Some((status, host_ns));
-            self.push(Ok(BaseEvent::Status(status)));
-        }
-    }
-
-    fn on_bytes(&mut self, bytes: &[u8]) {
-        let host_ns = host_now_ns();
-        for payload in self.decoder.feed(bytes) {
-            if let Some(cs) = self.decoder.core_sensors(&payload) {
-                self.on_sensors(cs, host_ns);
-            }
-        }
-        let st = self.decoder.stats();
-        self.shared.frames_rx.store(st.frames, Ordering::Relaxed);
-        self.shared.dropped_rx.store(st.bad_checksum + st.malformed, Ordering::Relaxed);
-    }
-
-    async fn run(mut self, first: C::Stream) {
-        let mut stream = first;
-        loop {
-            let reason = {
-                let period = Duration::from_secs_f64(1.0 / self.cfg.command_rate_hz);
-                let mut tick = tokio::time::interval(period);
-                tick.set_missed_tick_behavior(MissedTickBehavior::Delay);
-                let mut last_rx = Instant::now();
-                let mut buf = [0u8; 512];
-                loop {
-                    tokio::select! {
-                        biased;
-                        changed = self.cmd_rx.changed() => {
-                            if changed.is_err() {
-                                let _ = send(&mut stream, &self.shared, self.cfg.silence_timeout, &encode_base_control(0, 0)).await;
-                                return;
-                            }
-                            self.fresh_required = false;
-                            let f = self.current_frame();
-                            if let Err(r) = send(&mut stream, &self.shared, self.cfg.silence_timeout, &f).await { break r; }
-                            tick.reset();
-                        }
-                        n = stream.read(&mut buf) => match n {
-                            Ok(0) => break "the port was closed".to_string(),
-                            Err(e) => break format!("read failed: {e}"),
-                            Ok(n) => { last_rx = Instant::now(); self.on_bytes(&buf[..n]); }
-                        },
-                        _ = tick.tick() => {
-                            let f = self.current_frame();
-                            if let Err(r) = send(&mut stream, &self.shared, self.cfg.silence_timeout, &f).await { break r; }
-                        }
-                        _ = tokio::time::sleep_until(last_rx + self.cfg.silence_timeout) => {
-                            break format!("nothing received for {} ms", self.cfg.silence_timeout.as_millis());
-                        }
-                    }
-                }
-            };
-            self.shared.connected.store(false, Ordering::Relaxed);
-            self.shared.disconnects.fetch_add(1, Ordering::Relaxed);
-            *self.shared.emergency.lock().unwrap_or_else(|e| e.into_inner()) = None;
-            let err = SerialBaseError::Disconnected { port: self.port.clone(), reason };
-            tracing::warn!("{err}");
-            self.push(Err(err));
-            drop(stream);
-            let mut delay = self.cfg.backoff.initial;
-            stream = loop {
-                let sleep = tokio::time::sleep(delay);
-                tokio::pin!(sleep);
-                loop {
-                    tokio::select! {
-                        _ = &mut sleep => break,
-                        changed = self.cmd_rx.changed() => if changed.is_err() { return },
-                    }
-                }
-                if let Ok(mut s) = self.connector.connect().await
-                    && let Ok(cs) = wait_for_sensors(&mut s, &self.cfg, &self.port, &mut self.decoder).await
-                {
-                    *self.shared.emergency.lock().unwrap_or_else(|e| e.into_inner()) =
-                        self.connector.emergency_writer(&s);
-                    self.shared.connected.store(true, Ordering::Relaxed);
-                    self.shared.reconnects.fetch_add(1, Ordering::Relaxed);
-                    self.left.rebase();
-                    self.right.rebase();
-                    self.last = None;
-                    self.fresh_required = true;
-                    self.on_sensors(cs, host_now_ns());
-                    tracing::info!(port = self.port, "Kobuki base reconnected");
-                    break s;
-                }
-                delay = (delay * 2).min(self.cfg.backoff.max);
-            };
         }
     }
 }

@@ -10,14 +10,15 @@
 //! | [`undistort`] | the plumb_bob lens model and its inverse, [`Undistorter`]: a distorted frame → the pinhole frame with the same K |
 //! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103), [`Odometry`], [`motion::wrap_angle`] |
 //! | [`error`] | [`ErrorKind`]: what the runtime does about a hardware error (reconnect, stop, skip, report) |
-//! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`], [`LinkStats`] |
-//! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
-//! | [`fnp_driver`] | the FNP/1 host driver over tokio-serial, reconnect/back-off, device-clock mapping |
-//! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
-//! | [`camera`] | the [`Camera`] trait and the monotonic clock that frames and odometry are stamped with |
-//! | [`v4l2`] | the V4L2 camera (`/dev/videoN`), device listing, the `[camera]` config table |
+//! | [`camera`] | the [`Camera`] trait and the monotonic clock frames are stamped with |
+//! | [`v4l2`] | the V4L2 camera (`/dev/videoN`): the `[camera]` config table, device probing and listing, capture |
 //! | [`mjpeg`] | MJPEG → luma (zune-jpeg), inserting the standard Huffman tables UVC frames omit |
 //! | [`yuyv`] | YUYV 4:2:2 → luma |
+//! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`], [`LinkStats`] |
+//! | [`serial_task`] | the serial skeleton both base drivers share: opening the port, the command task, expiry, reconnect/back-off, link counters, device-clock mapping |
+//! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
+//! | [`fnp_driver`] | the FNP/1 host driver: HELLO/INFO handshake, set-points out, odometry and status in |
+//! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
 
 pub mod base;
 pub mod calib;
@@ -29,6 +30,7 @@ pub mod image;
 pub mod kobuki;
 pub mod mjpeg;
 pub mod motion;
+pub mod serial_task;
 pub mod undistort;
 pub mod v4l2;
 pub mod yuyv;
