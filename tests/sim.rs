@@ -3,9 +3,9 @@
 
 use flownav::config::Config;
 use flownav::pafsis::{GoalStatus, Mission, TopoMap};
-use flownav::sim::{self, SimSetup, SimSummary};
-use hal::Calibration;
-use mocks::World;
+use flownav::sim::{self, Progress, SimSetup, SimSummary};
+use hal::{BodyVelocity, Calibration, Camera, ErrorKind, Frame, LumaImage};
+use mocks::{RenderedCamera, World};
 
 /// A 3 m wide, 8 m long empty hall; the robot starts at A facing east and must stop at B, 3 m on.
 const HALL: &str = r#"
@@ -72,6 +72,90 @@ async fn closed_loop_reaches_the_goal_without_collisions() {
     assert!(seconds >= s.time_s.floor() as usize, "one progress line per simulated second");
     assert_eq!(s.failsafe_stops, 0);
     assert!(!s.pose_hint);
+}
+
+/// What the rendered camera does from frame `at` on.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Fault {
+    /// Frame `at` has half the size (the step fails on it), then no frame comes any more.
+    BadFrameThenStall,
+    /// No frame comes any more (stall timeouts).
+    Stall,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("test camera: no frame")]
+struct NoFrame;
+impl hal::Error for NoFrame {
+    fn kind(&self) -> ErrorKind {
+        ErrorKind::Timeout
+    }
+}
+
+/// The simulator's rendered camera with a fault from frame `at` on.
+struct Faulty {
+    inner: RenderedCamera,
+    at: u64,
+    fault: Fault,
+    seq: u64,
+}
+
+impl Camera for Faulty {
+    type Error = NoFrame;
+
+    fn capture(&mut self) -> Result<Frame, NoFrame> {
+        let seq = self.seq;
+        self.seq += 1;
+        if seq > self.at || (seq == self.at && self.fault == Fault::Stall) {
+            return Err(NoFrame);
+        }
+        let mut frame = self.inner.capture().map_err(|_| NoFrame)?;
+        if seq == self.at {
+            let (w, h) = (frame.image.width(), frame.image.height());
+            frame.image = LumaImage::new(w / 2, h / 2);
+        }
+        Ok(frame)
+    }
+}
+
+/// The hall mission for 3 s with `fault` from frame 40 (1.33 s) on: the summary and the
+/// progress reports (one per simulated second, each with the set-point the simulated firmware
+/// was seen to hold before time moved on).
+async fn faulty_run(fault: Fault) -> (SimSummary, Vec<Progress>) {
+    let mut setup = hall_setup();
+    setup.max_time_s = 3.0;
+    let mut reports = Vec::new();
+    let camera = |inner| Faulty { inner, at: 40, fault, seq: 0 };
+    let s = sim::run_with_camera(&setup, None, |p| reports.push(p.clone()), camera).await.expect("the simulation runs");
+    (s, reports)
+}
+
+fn setpoint_at(reports: &[Progress], t_s: f64) -> BodyVelocity {
+    reports.iter().find(|p| (p.t_s - t_s).abs() < 1e-9).unwrap_or_else(|| panic!("no report at {t_s} s")).setpoint
+}
+
+/// A failed step in the simulator goes through the runtime's fail-safe: a zero at once, and the
+/// base stays stopped while no frame comes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_step_error_in_sim_stops_the_base() {
+    let (s, reports) = faulty_run(Fault::BadFrameThenStall).await;
+    assert!(setpoint_at(&reports, 1.0).v > 0.0, "driving before the bad frame: {reports:?}");
+    assert_eq!(s.failsafe_stops, 1, "{}", s.to_json_line());
+    assert_eq!(s.frames, 41, "{}", s.to_json_line());
+    assert_eq!(setpoint_at(&reports, 2.0), BodyVelocity::ZERO);
+    assert_eq!(setpoint_at(&reports, 3.0), BodyVelocity::ZERO);
+}
+
+/// When the rendered camera stalls, the last set-point expires through the runtime's rule
+/// (`stall` after its frame's capture, simulated time) and the base is stopped.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_camera_stall_in_sim_expires_the_last_setpoint() {
+    let (s, reports) = faulty_run(Fault::Stall).await;
+    assert!(setpoint_at(&reports, 1.0).v > 0.0, "driving before the stall: {reports:?}");
+    assert_eq!(s.failsafe_stops, 1, "one expiry: {}", s.to_json_line());
+    assert_eq!(s.frames, 40, "{}", s.to_json_line());
+    assert_eq!(setpoint_at(&reports, 2.0), BodyVelocity::ZERO);
+    assert_eq!(setpoint_at(&reports, 3.0), BodyVelocity::ZERO);
 }
 
 #[test]

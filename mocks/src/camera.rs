@@ -91,6 +91,8 @@ pub enum Pacing {
 }
 
 /// A simulated camera: renders the world from the pose its source reports at each capture.
+/// `flownav sim` drives the runtime's control loop with it (simulated pacing, frames stamped
+/// with the simulation's clock through [`RenderedCamera::with_clock`]).
 ///
 /// Motion blur (see [`Effects::blur_samples`]) spans the pose of the previous capture to the
 /// current one, i.e. a shutter open for the whole frame interval.

@@ -10,15 +10,21 @@
 //!                        stale dropped)        catch_unwind)        odometry, shutdown)        writes bytes)
 //! ```
 //!
+//! The rules between a frame and a set-point live in [`control`], with the clock as an argument,
+//! and `flownav sim` runs the same code on simulated time ([`control::ControlLoop`]); this module
+//! adds the threads and the real clock around them:
+//!
 //! - **Camera** on a dedicated thread (`capture` blocks). Frames go through a one-frame
 //!   [`slot::FrameSlot`]: a frame the step has not taken yet is replaced by the newer one and
-//!   counted as dropped, so a slow step never builds a queue.
-//! - **Step** on a second dedicated thread, never on the async threads. Each frame is stepped
-//!   with the measured velocity of the latest odometry stamped at or before the frame's capture
-//!   ([`odometry::OdometryHistory`]). A panic in the step is caught: the robot is stopped and the
-//!   run ends with [`RuntimeError::StepPanicked`].
-//! - **Control** in the caller's task: sends each new set-point at once, refreshes the current
-//!   command at `setpoint_rate_hz` (≥ 20 Hz; drivers zero commands that are not refreshed), and
+//!   counted as dropped, so a slow step never builds a queue. Errors are sorted by
+//!   [`control::camera_trouble`].
+//! - **Step** on a second dedicated thread, never on the async threads, through
+//!   [`control::Stepper`]: each frame is stepped with the measured velocity of the odometry
+//!   stamped over the frame interval ([`odometry::OdometryHistory`]). A panic in the step is
+//!   caught: the robot is stopped and the run ends with [`RuntimeError::StepPanicked`].
+//! - **Control** in the caller's task, through [`control::Setpoints`] on the monotonic clock:
+//!   sends each new set-point at once, refreshes the current command at `setpoint_rate_hz`
+//!   (≥ 20 Hz; drivers zero commands that are not refreshed), wakes at the command's expiry, and
 //!   enforces the safety rules below. Base events (odometry, status, link loss) are read here.
 //!
 //! Safety rules (DESIGN.md "Safety is a feature with tests"):
@@ -37,14 +43,15 @@
 //!   also while a panic unwinds).
 
 pub mod config;
+pub mod control;
 pub mod latency;
 pub mod odometry;
 pub mod reopen;
 pub mod slot;
 
-use crate::logging::record::{RecordImage, record_failsafe, record_frame, record_step};
 use crate::logging::{LogHandle, LogLevel};
 use crate::step::Pipeline;
+use control::{CameraTrouble, Failsafe, Order, Setpoints, Stepped, Stepper, camera_trouble, panic_message};
 use hal::camera::monotonic_ns;
 use hal::{BaseEvent, BodyVelocity, Camera, Error, ErrorKind, LinkStats, MotorBase};
 use latency::{LatencyHistogram, LatencySummary};
@@ -94,7 +101,7 @@ impl RuntimeOptions {
         }
     }
 
-    fn validate(&self) -> Result<(), RuntimeError> {
+    pub(crate) fn validate(&self) -> Result<(), RuntimeError> {
         if !(self.setpoint_rate_hz.is_finite() && (20.0..=1000.0).contains(&self.setpoint_rate_hz)) {
             return Err(RuntimeError::Options(format!(
                 "setpoint_rate_hz = {} must be in 20..=1000 Hz",
@@ -261,7 +268,7 @@ where
         let (shared, tx, stall, logger) = (shared.clone(), tx.clone(), opts.stall, logger.clone());
         std::thread::Builder::new()
             .name("flownav-step".into())
-            .spawn(move || step_loop(pipeline, &shared, &tx, stall, logger.as_ref()))
+            .spawn(move || step_loop(pipeline, &shared, &tx, stall, logger))
     };
     let step_thread = match step_thread {
         Ok(t) => t,
@@ -310,7 +317,7 @@ where
         camera_timeouts: c.timeouts.load(Ordering::Relaxed),
         camera_disconnects: c.camera_disconnects.load(Ordering::Relaxed),
         step_failures: c.step_failures.load(Ordering::Relaxed),
-        failsafe_stops: control.failsafe_stops,
+        failsafe_stops: control.setpoints.failsafe_stops(),
         setpoints_sent: control.sent,
         setpoints_refused: control.refused,
         odometry_events: control.odometry_events,
@@ -358,29 +365,13 @@ where
     result.map(|_| r)
 }
 
-/// Why the runtime forced a zero set-point.
-#[derive(Clone, Copy, Debug)]
-enum Failsafe {
-    Expired,
-    StepFailed,
-    CameraDown,
-}
-
-/// The current command and the moment it stops being valid.
-#[derive(Clone, Copy, Debug)]
-struct Command {
-    setpoint: BodyVelocity,
-    expires: Instant,
-}
-
+/// The control task: the [`Setpoints`] rules on the monotonic clock, the base's events.
 struct Control {
     period: Duration,
-    stall: Duration,
     shared: Arc<Shared>,
     logger: Option<LogHandle>,
-    command: Option<Command>,
+    setpoints: Setpoints,
     latency: LatencyHistogram,
-    failsafe_stops: u64,
     sent: u64,
     refused: u64,
     odometry_events: u64,
@@ -404,12 +395,10 @@ impl Control {
     fn new(opts: &RuntimeOptions, shared: Arc<Shared>, logger: Option<LogHandle>) -> Self {
         Self {
             period: Duration::from_secs_f64(1.0 / opts.setpoint_rate_hz),
-            stall: opts.stall,
             shared,
+            setpoints: Setpoints::new(opts.stall, logger.clone()),
             logger,
-            command: None,
             latency: LatencyHistogram::new(),
-            failsafe_stops: 0,
             sent: 0,
             refused: 0,
             odometry_events: 0,
@@ -433,7 +422,7 @@ impl Control {
         self.send(base, BodyVelocity::ZERO);
         tick.reset();
         loop {
-            let expires = self.command.map(|c| c.expires);
+            let expires_ns = self.setpoints.expires_ns();
             let events_pause = self.events_failing;
             tokio::select! {
                 biased;
@@ -448,12 +437,16 @@ impl Control {
                     }
                     tick.reset();
                 }
-                () = tokio::time::sleep_until(expires.unwrap_or_else(Instant::now)), if expires.is_some() => {
-                    self.failsafe(base, Failsafe::Expired, "no new set-point within the stall time");
+                () = tokio::time::sleep_until(expires_ns.map_or_else(Instant::now, instant_at)), if expires_ns.is_some() => {
+                    // The timer fired for the expiry: judge at that moment, whatever the two
+                    // clocks' last microseconds say.
+                    let now_ns = monotonic_ns().max(expires_ns.unwrap_or(0));
+                    let cmd = self.setpoints.on_tick(now_ns);
+                    self.send(base, cmd);
                     tick.reset();
                 }
                 _ = tick.tick() => {
-                    let cmd = self.command.map_or(BodyVelocity::ZERO, |c| c.setpoint);
+                    let cmd = self.setpoints.on_tick(monotonic_ns());
                     self.send(base, cmd);
                 }
                 ev = next_event(base, events_pause) => self.on_event(ev),
@@ -483,29 +476,19 @@ impl Control {
         }
     }
 
-    /// Forces a zero set-point now. Counted when it replaces a valid command.
+    /// Forces a zero set-point now ([`Setpoints::failsafe`]) and sends it.
     fn failsafe<B: MotorBase>(&mut self, base: &mut B, why: Failsafe, detail: &str) {
-        if self.command.take().is_some() {
-            self.failsafe_stops += 1;
-            tracing::warn!("fail-safe stop ({why:?}): {detail}");
-            if let Some(log) = &self.logger {
-                let message = format!("runtime: zero set-point sent ({why:?}): {detail}");
-                log.log(monotonic_ns(), LogLevel::Warning, message);
-            }
-        }
-        self.send(base, BodyVelocity::ZERO);
+        let zero = self.setpoints.failsafe(why, detail, monotonic_ns());
+        self.send(base, zero);
     }
 
     fn on_msg<B: MotorBase>(&mut self, base: &mut B, msg: Msg) -> Option<Result<EndReason, RuntimeError>> {
         match msg {
             Msg::Setpoint { seq, t_ns, setpoint } => {
-                let expires = instant_at(t_ns.saturating_add(self.stall.as_nanos() as u64));
-                if expires <= Instant::now() {
-                    let detail = format!("the set-point of frame {seq} is older than the stall time");
-                    self.failsafe(base, Failsafe::Expired, &detail);
+                if self.setpoints.on_setpoint(seq, t_ns, setpoint, monotonic_ns()) == Order::Stop {
+                    self.send(base, BodyVelocity::ZERO);
                     return None;
                 }
-                self.command = Some(Command { setpoint, expires });
                 if self.send(base, setpoint) {
                     let latency = monotonic_ns().saturating_sub(t_ns);
                     self.latency.record(latency);
@@ -596,37 +579,20 @@ async fn next_event<B: MotorBase>(base: &mut B, pause: bool) -> Result<Option<Ba
     base.next_event(Duration::from_millis(200)).await
 }
 
-fn panic_message(p: &(dyn std::any::Any + Send)) -> String {
-    p.downcast_ref::<&str>()
-        .map(|s| s.to_string())
-        .or_else(|| p.downcast_ref::<String>().cloned())
-        .unwrap_or_else(|| "unknown panic payload".into())
-}
-
-/// The step thread: takes the newest frame, steps it, reports to the control task.
-///
-/// With a logger, every frame's image, every step and every `fail_safe` call are recorded
-/// through [`crate::logging::record`], so `flownav replay` can re-run the log bit for bit.
+/// The step thread: takes the newest frame, steps it ([`Stepper`]), reports to the control task.
 fn step_loop(
-    mut pipeline: Pipeline,
+    pipeline: Pipeline,
     shared: &Shared,
     tx: &mpsc::UnboundedSender<Msg>,
     stall: Duration,
-    logger: Option<&LogHandle>,
+    logger: Option<LogHandle>,
 ) {
-    let mut stalled = false;
-    // the capture time of the last frame stepped: the older frame of the next pair
-    let mut prev_t_ns: Option<u64> = None;
+    let mut stepper = Stepper::new(pipeline, logger);
     loop {
         let frame = match shared.slot.take(stall) {
             Taken::Frame(f) => f,
             Taken::TimedOut => {
-                if !stalled {
-                    stalled = true;
-                    pipeline.fail_safe();
-                    if let Some(h) = logger {
-                        record_failsafe(h, monotonic_ns(), "no frame within the stall time");
-                    }
+                if stepper.stall(monotonic_ns()) {
                     let _ = tx.send(Msg::Stalled);
                 }
                 continue;
@@ -636,51 +602,28 @@ fn step_loop(
                 return;
             }
         };
-        stalled = false;
-        let history = shared.odometry.lock().unwrap_or_else(|e| e.into_inner());
-        let velocity = match prev_t_ns {
-            Some(t0) if t0 < frame.t_ns => history.mean_over(t0, frame.t_ns),
-            _ => history.for_frame(frame.t_ns).map(|o| o.velocity),
-        }
-        .unwrap_or(BodyVelocity::ZERO);
-        drop(history);
-        prev_t_ns = Some(frame.t_ns);
-        let (seq, t_ns) = (frame.seq, frame.t_ns);
-        if let Some(h) = logger {
-            let encoded = shared.encoded.lock().unwrap_or_else(|e| e.into_inner()).take();
-            match encoded {
-                Some((s, jpeg)) if s == seq => record_frame(h, &frame, RecordImage::Jpeg(jpeg)),
-                _ => record_frame(h, &frame, RecordImage::Mono8(&frame.image)),
-            };
-        }
-        let (wall0, cpu0) = (monotonic_ns(), thread_cpu_ns());
-        let outcome = catch_unwind(AssertUnwindSafe(|| pipeline.step(frame, velocity)));
+        let velocity = stepper.velocity_for(&shared.odometry.lock().unwrap_or_else(|e| e.into_inner()), frame.t_ns);
+        let encoded = match shared.encoded.lock().unwrap_or_else(|e| e.into_inner()).take() {
+            Some((s, jpeg)) if s == frame.seq => Some(jpeg),
+            _ => None,
+        };
+        let stepped = stepper.step(frame, velocity, encoded);
         {
-            let (wall, cpu) = (monotonic_ns().saturating_sub(wall0), thread_cpu_ns().saturating_sub(cpu0));
+            let (wall, cpu) = stepper.last_step_ns();
             let mut times = shared.step_times.lock().unwrap_or_else(|e| e.into_inner());
             times.0.record(wall);
             times.1.record(cpu);
         }
         shared.counters.processed.fetch_add(1, Ordering::Relaxed);
-        let msg = match outcome {
-            Ok(Ok(Some(out))) => {
-                if let Some(h) = logger {
-                    record_step(h, velocity, &out, &pipeline);
-                }
-                Msg::Setpoint { seq, t_ns, setpoint: out.setpoint() }
-            }
-            Ok(Ok(None)) => continue,
-            Ok(Err(e)) => {
+        let msg = match stepped {
+            Stepped::Output { seq, t_ns, output, .. } => Msg::Setpoint { seq, t_ns, setpoint: output.setpoint() },
+            Stepped::Primed => continue,
+            Stepped::Failed { seq, error, .. } => {
                 shared.counters.step_failures.fetch_add(1, Ordering::Relaxed);
-                pipeline.fail_safe();
-                let error = e.to_string();
-                if let Some(h) = logger {
-                    record_failsafe(h, t_ns, &format!("step failed on frame {seq}: {error}"));
-                }
                 Msg::StepFailed { seq, error }
             }
-            Err(p) => {
-                let _ = tx.send(Msg::StepPanicked(panic_message(p.as_ref())));
+            Stepped::Panicked(message) => {
+                let _ = tx.send(Msg::StepPanicked(message));
                 return;
             }
         };
@@ -708,17 +651,17 @@ fn camera_loop<C: Camera>(mut camera: C, shared: &Shared, tx: &mpsc::UnboundedSe
                 *shared.encoded.lock().unwrap_or_else(|e| e.into_inner()) = encoded;
                 shared.slot.put(frame);
             }
-            Ok(Err(e)) => match e.kind() {
-                ErrorKind::Timeout => {
+            Ok(Err(e)) => match camera_trouble(e.kind()) {
+                CameraTrouble::Skip if e.kind() == ErrorKind::Timeout => {
                     c.timeouts.fetch_add(1, Ordering::Relaxed);
                     tracing::debug!("camera: {e}");
                 }
-                ErrorKind::BadData => {
+                CameraTrouble::Skip => {
                     if c.bad.fetch_add(1, Ordering::Relaxed) < 10 {
                         tracing::warn!("camera: {e}");
                     }
                 }
-                ErrorKind::Disconnected => {
+                CameraTrouble::Down => {
                     if !down {
                         down = true;
                         c.camera_disconnects.fetch_add(1, Ordering::Relaxed);
@@ -728,11 +671,11 @@ fn camera_loop<C: Camera>(mut camera: C, shared: &Shared, tx: &mpsc::UnboundedSe
                     sleep_unless_stopped(backoff, &shared.stop);
                     backoff = (backoff * 2).min(opts.camera_backoff_max);
                 }
-                ErrorKind::EndOfStream => {
+                CameraTrouble::End => {
                     shared.slot.close(Closed::EndOfStream(e.to_string()));
                     return;
                 }
-                ErrorKind::Unsupported | ErrorKind::Other => {
+                CameraTrouble::Fatal => {
                     shared.slot.close(Closed::Fatal(format!("camera: {e}")));
                     return;
                 }
@@ -742,14 +685,6 @@ fn camera_loop<C: Camera>(mut camera: C, shared: &Shared, tx: &mpsc::UnboundedSe
                 return;
             }
         }
-    }
-}
-
-/// CPU time of the calling thread, ns (0 if the clock cannot be read).
-fn thread_cpu_ns() -> u64 {
-    match nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID) {
-        Ok(ts) => ts.tv_sec() as u64 * 1_000_000_000 + ts.tv_nsec() as u64,
-        Err(_) => 0,
     }
 }
 

@@ -1,16 +1,25 @@
-//! The closed-loop simulation behind `flownav sim`: the same [`Pipeline`] that drives the robot,
-//! between a rendered camera and a simulated FNP/1 base reached over a pseudo-terminal.
+//! The closed-loop simulation behind `flownav sim`: the control loop of `flownav run`
+//! ([`ControlLoop`]: frame slot, step, set-point expiry, fail-safe) between a rendered camera
+//! (`mocks::RenderedCamera`, a `hal::Camera`) and a simulated FNP/1 base reached over a
+//! pseudo-terminal, on simulated time.
 //!
 //! One control tick of `dt = 1/fps` of simulated time:
 //!
 //! ```text
-//! SimServer::advance(dt) ─▶ ODOM/STATUS bytes on the pty ─▶ FnpBase (real driver) ─▶ odometry
-//!        │ true pose                                                                   │
-//!        ▼                                                                             ▼
-//! Renderer::render_frame(pose, noise) ─▶ Frame { seq, t_ns = sim time } ─▶ Pipeline::step ─▶ set-point
-//!                                                                                      │
-//! FnpBase::set_velocity ─▶ SETPOINT bytes on the pty ─▶ SimBase applies it ◀───────────┘ (waited for)
+//! SimServer::advance(dt) ─▶ ODOM/STATUS bytes on the pty ─▶ FnpBase (real driver) ─▶ ControlLoop::on_odometry
+//!        │ true pose                                                                    │
+//!        ▼                                                                              ▼
+//! RenderedCamera::capture ─▶ Frame { seq, t_ns = sim time } ─▶ ControlLoop::on_frame(frame, now = sim time)
+//!   (no frame: ControlLoop::on_tick(now): refresh, stall, expiry)    (slot → Stepper → Setpoints) ─▶ set-point
+//!                                                                                       │
+//! FnpBase::set_velocity ─▶ SETPOINT bytes on the pty ─▶ SimBase applies it ◀────────────┘ (waited for)
 //! ```
+//!
+//! `flownav run` spreads the same [`ControlLoop`] parts over its camera thread, step thread and
+//! control task on the monotonic clock (see [`crate::runtime`]); here they run in order on one
+//! task with the clock injected, which keeps a run deterministic. A step takes no simulated time,
+//! so no frame is ever stale in the slot and a set-point is sent at its frame's time; it expires,
+//! and a fail-safe zero goes out, when frames stop coming (a camera fault) or a step fails.
 //!
 //! Simulated time moves only in `advance` ([`SimClock::Manual`]), so the loop runs as fast as the
 //! renderer and the pipeline allow, or paced to the wall clock (`realtime`). Each tick waits for
@@ -37,19 +46,21 @@ pub mod quality;
 pub mod stats;
 
 use crate::config::Config;
-use crate::logging::record::{self, RecordImage};
 use crate::logging::{LogHandle, LogLevel, Pose2D, WorldBox, WorldCylinder, WorldGeometry};
 use crate::pafsis::{GoalStatus, Mission, TopoMap};
 use crate::perception::TpoShape;
+use crate::runtime::control::{ControlLoop, Stepped};
+use crate::runtime::{RuntimeError, RuntimeOptions};
 use crate::step::{Pipeline, PipelineError, StepOutput};
 use hal::fnp::to_i16_clamped;
 use hal::fnp_driver::{FnpBase, FnpConfig, SerialBaseError};
-use hal::{BaseEvent, BodyVelocity, Calibration, Frame, LumaImage, MotorBase};
+use hal::{BaseEvent, BodyVelocity, Calibration, Camera, MotorBase};
 use mocks::kinematics::{CollisionFn, Pose as KPose};
 use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimDevice, SimServer};
-use mocks::{Effects, GroundTruth, Pose, Renderer, TpoClass, World};
+use mocks::{Effects, GroundTruth, Pacing, Pose, RenderedCamera, Renderer, TpoClass, World};
 use serde::Serialize;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// The built-in topological map of the built-in office world.
@@ -72,6 +83,9 @@ pub enum SimError {
     Stalled { t_s: f64, what: &'static str, timeout_ms: u128 },
     #[error("bad simulation option {name}: {problem}")]
     Option { name: &'static str, problem: String },
+    /// The control loop ended the run: a step panic, a camera that cannot go on, bad options.
+    #[error(transparent)]
+    Control(#[from] RuntimeError),
 }
 
 /// Everything a run needs. [`SimSetup::office`] gives the defaults of `flownav sim`.
@@ -321,13 +335,25 @@ fn ns(t_s: f64) -> u64 {
     (t_s * 1e9).round() as u64
 }
 
-/// Runs one mission in closed loop. `progress` is called once per simulated second; `log`
-/// receives every frame, step, pose and base event. Must be called inside a multi-threaded
-/// tokio runtime (the pty server and the driver run as tasks beside the loop).
+/// Runs one mission in closed loop with the rendered camera. `progress` is called once per
+/// simulated second; `log` receives every frame, step, pose and base event. Must be called inside
+/// a multi-threaded tokio runtime (the pty server and the driver run as tasks beside the loop).
 pub async fn run(
     setup: &SimSetup,
     log: Option<&LogHandle>,
+    progress: impl FnMut(&Progress),
+) -> Result<SimSummary, SimError> {
+    run_with_camera(setup, log, progress, |camera| camera).await
+}
+
+/// [`run`] with the rendered camera wrapped by `camera` (a test's fault injection: a bad frame,
+/// a stall, the end of the stream). Whatever the wrapper returns goes through the runtime's
+/// rules ([`ControlLoop`]).
+pub async fn run_with_camera<C: Camera>(
+    setup: &SimSetup,
+    log: Option<&LogHandle>,
     mut progress: impl FnMut(&Progress),
+    camera: impl FnOnce(RenderedCamera) -> C,
 ) -> Result<SimSummary, SimError> {
     if !(setup.fps.is_finite() && (1.0..=240.0).contains(&setup.fps)) {
         return Err(SimError::Option { name: "fps", problem: format!("{} must be in 1..=240", setup.fps) });
@@ -338,11 +364,20 @@ pub async fn run(
     let wall_start = Instant::now();
     let start = setup.start_pose()?;
     let goal_xy = setup.place_position(&setup.mission.to)?;
-    let mut pipeline =
-        Pipeline::new(&setup.config, setup.calib.clone(), Some((setup.map.clone(), setup.mission.clone())))?;
-    let renderer = Renderer::new(&setup.world, &setup.calib);
+    let pipeline = Pipeline::new(&setup.config, setup.calib.clone(), Some((setup.map.clone(), setup.mission.clone())))?;
+    let mut control = ControlLoop::new(pipeline, &RuntimeOptions::from_config(&setup.config), log.cloned(), 0)?;
     let truth = GroundTruth::new(&setup.world, &setup.calib);
     let effects = Effects { noise_sigma: setup.noise_sigma, seed: setup.seed, ..Effects::default() };
+
+    // The camera renders the true pose of the tick and stamps its frame with simulated time.
+    let camera_pose = Arc::new(Mutex::new(start));
+    let sim_ns = Arc::new(AtomicU64::new(0));
+    let renderer = Arc::new(Renderer::new(&setup.world, &setup.calib));
+    let clock = sim_ns.clone();
+    let rendered =
+        RenderedCamera::with_shared_pose(renderer, setup.fps, Pacing::Simulated, effects, camera_pose.clone())
+            .with_clock(move || clock.load(Ordering::Relaxed));
+    let mut camera = camera(rendered);
 
     // The simulated base: firmware state machine on a pty, time moved by hand.
     let world = Arc::new(setup.world.clone());
@@ -379,15 +414,12 @@ pub async fn run(
     let dt = 1.0 / setup.fps;
     let tick = Duration::from_secs_f64(dt);
     let max_ticks = (setup.max_time_s * setup.fps).ceil() as u64;
-    let mut image = LumaImage::new(setup.calib.camera.width as usize, setup.calib.camera.height as usize);
     let mut pose = start;
     let mut prev_pose = start;
-    let mut odometry = BodyVelocity::ZERO;
-    let mut tick_odometry: Vec<BodyVelocity> = Vec::new();
     let (mut odom_seen, mut path_m, mut min_clear) = (0u64, 0.0f64, f64::INFINITY);
     let mut first_contact: Option<Contact> = None;
     let mut contact_trace = contact::ContactTrace::new(&setup.world);
-    let (mut failsafe_stops, mut frames, mut tpo_frames) = (0u64, 0u64, [0u64; 5]);
+    let (mut frames, mut tpo_frames) = (0u64, [0u64; 5]);
     let (mut doors_matched, mut landmarks_missed, mut replans) = (0u64, 0u64, 0u64);
     let mut status = GoalStatus::Active;
     let mut last_output: Option<StepOutput> = None;
@@ -404,9 +436,10 @@ pub async fn run(
             }
             server.advance(tick);
         }
-        // Everything the base sent up to now must have come through the driver.
+        sim_ns.store(t_ns, Ordering::Relaxed);
+        // Everything the base sent up to now must have come through the driver. Odometry is
+        // stamped with the tick's time: the frame interval it arrived in is the one it measured.
         let sent = server.with_device(|b| b.counters().odom_sent);
-        tick_odometry.clear();
         let deadline = Instant::now() + setup.link_timeout;
         while odom_seen < sent {
             let left = deadline.saturating_duration_since(Instant::now());
@@ -416,11 +449,10 @@ pub async fn run(
             match base.next_event(left).await? {
                 Some(BaseEvent::Odometry(o)) => {
                     odom_seen += 1;
-                    // the mean of this frame interval's samples (as `run` does, see
-                    // runtime::odometry)
-                    tick_odometry.push(o.velocity);
+                    let o = hal::Odometry { t_ns, ..o };
+                    control.on_odometry(o);
                     if let Some(log) = log {
-                        log.odometry(&hal::Odometry { t_ns, ..o });
+                        log.odometry(&o);
                     }
                 }
                 Some(BaseEvent::Status(s)) => {
@@ -432,16 +464,10 @@ pub async fn run(
             }
         }
 
-        if !tick_odometry.is_empty() {
-            let n = tick_odometry.len() as f64;
-            odometry = BodyVelocity::new(
-                tick_odometry.iter().map(|o| o.v).sum::<f64>() / n,
-                tick_odometry.iter().map(|o| o.omega).sum::<f64>() / n,
-            );
-        }
+        let odometry = control.velocity_for(t_ns);
         let p = server.pose();
         pose = Pose::new(p.x, p.y, p.theta);
-        let (pose_w, prev_w) = (pose, prev_pose);
+        let pose_w = pose;
         path_m += (pose.x - prev_pose.x).hypot(pose.y - prev_pose.y);
         prev_pose = pose;
         let near = setup.world.clearance(pose.x, pose.y);
@@ -453,7 +479,7 @@ pub async fn run(
                 t_s,
                 pose,
                 world: &setup.world,
-                pipeline: &pipeline,
+                pipeline: control.pipeline(),
                 last: last_output.as_ref(),
                 odometry,
             };
@@ -467,37 +493,40 @@ pub async fn run(
             });
         }
 
-        renderer.render_frame(prev_w, pose_w, &effects, k, &mut image);
-        let frame = Frame { seq: k, t_ns, image: image.clone() };
+        // The frame of this tick through the runtime's control loop (slot, step, set-point rules).
+        *camera_pose.lock().unwrap_or_else(|e| e.into_inner()) = pose_w;
         if let Some(log) = log {
-            record::record_frame(log, &frame, RecordImage::Mono8(&frame.image));
             log.pose(t_ns, &Pose2D { x_m: pose.x, y_m: pose.y, theta_rad: pose.yaw });
         }
-        frames += 1;
-        let setpoint = match pipeline.step(frame, odometry) {
-            Ok(Some(out)) => {
-                let setpoint = out.setpoint();
-                tpo_frames[TpoShape::ALL.iter().position(|s| *s == out.perception.tpo.shape).unwrap_or(4)] += 1;
-                status = out.goal.status;
-                if let Some(log) = log {
-                    record::record_step(log, odometry, &out, &pipeline);
+        let mut ended = false;
+        let setpoint = match camera.capture() {
+            Ok(frame) => {
+                frames += 1;
+                let encoded = camera.take_encoded();
+                let (stepped, setpoint) = control.on_frame(frame, encoded, t_ns)?;
+                if let Some(Stepped::Output { output, .. }) = stepped {
+                    let out = *output;
+                    tpo_frames[TpoShape::ALL.iter().position(|s| *s == out.perception.tpo.shape).unwrap_or(4)] += 1;
+                    status = out.goal.status;
+                    let pipeline = control.pipeline();
+                    scored.observe(&setup.world, &pose, pipeline.surface_points(), &pipeline.memory().occupied());
+                    let said_none = out.perception.tpo.shape == TpoShape::None;
+                    scored.observe_tpo(truth.tpo(pose).shape != TpoClass::None, said_none);
+                    last_output = Some(out);
                 }
-                scored.observe(&setup.world, &pose, pipeline.surface_points(), &pipeline.memory().occupied());
-                scored.observe_tpo(truth.tpo(pose).shape != TpoClass::None, out.perception.tpo.shape == TpoShape::None);
-                last_output = Some(out);
                 setpoint
             }
-            Ok(None) => BodyVelocity::ZERO,
             Err(e) => {
-                failsafe_stops += 1;
-                let setpoint = pipeline.fail_safe();
-                tracing::warn!("t {t_s:.2} s: step failed ({e}); commanding a stop");
-                if let Some(log) = log {
-                    record::record_failsafe(log, t_ns, &format!("step failed: {e}"));
+                ended = control.on_camera_error(&e, t_ns)?;
+                if ended {
+                    tracing::info!("t {t_s:.2} s: the camera's stream ended ({e}); stopping the robot");
+                    BodyVelocity::ZERO
+                } else {
+                    control.on_tick(t_ns)
                 }
-                setpoint
             }
         };
+        let pipeline = control.pipeline();
         if tracing::enabled!(target: "flownav::sim::frames", tracing::Level::TRACE)
             && let Some(o) = &last_output
         {
@@ -538,7 +567,7 @@ pub async fn run(
         if let Some(trace) = &mut contact_trace {
             trace.observe(t_s, pose, &setup.world, pipeline.memory());
         }
-        if let Some(p) = pipeline.pafsis_mut() {
+        if let Some(p) = control.pipeline_mut().pafsis_mut() {
             for ev in p.take_events() {
                 use crate::pafsis::PafsisEvent as E;
                 match &ev {
@@ -571,9 +600,10 @@ pub async fn run(
         }
 
         let report_every = setup.fps.round().max(1.0) as u64;
-        let done = status != GoalStatus::Active;
+        let done = status != GoalStatus::Active || ended;
         if k % report_every == 0 || done {
             let collisions = server.with_device(|b| b.drive().collisions());
+            let pipeline = control.pipeline();
             let (tpo, leg) = match &last_output {
                 Some(o) => (o.perception.tpo, pipeline.pafsis().map(|p| p.progress().description).unwrap_or_default()),
                 None => (Default::default(), String::new()),
@@ -604,6 +634,7 @@ pub async fn run(
     server.shutdown().await;
     let goal_error_m = (pose.x - goal_xy[0]).hypot(pose.y - goal_xy[1]);
     let wall_s = wall_start.elapsed().as_secs_f64();
+    let pipeline = control.pipeline();
     let summary = SimSummary {
         reached: status == GoalStatus::Arrived && goal_error_m <= setup.goal_tolerance_m,
         collisions,
@@ -615,7 +646,7 @@ pub async fn run(
         status,
         goal_error_m: round3(goal_error_m),
         frames,
-        failsafe_stops,
+        failsafe_stops: control.failsafe_stops(),
         stall_recoveries: pipeline.stall_recoveries(),
         escapes: pipeline.escapes(),
         first_contact,
