@@ -31,6 +31,7 @@ use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
 use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
+pub use crate::pairing::PairingParams;
 use crate::perception::{Obstacle, Perception};
 use hal::{BodyVelocity, Calibration, Frame, LumaImage, Undistorter};
 
@@ -60,38 +61,6 @@ pub enum PipelineError {
     Plan(#[from] PlanError),
     #[error(transparent)]
     Offis(#[from] crate::offis::ClassifyError),
-}
-
-/// The `[pairing]` config table: how far back the older frame of each pair lies.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct PairingParams {
-    /// The keyframe is replaced once the robot has driven this far since it, m (0: pair
-    /// consecutive frames, as the paper does).
-    pub min_baseline_m: f64,
-    /// ... or once it is this old, s.
-    pub max_span_s: f64,
-}
-
-impl Default for PairingParams {
-    fn default() -> Self {
-        Self { min_baseline_m: 0.04, max_span_s: 0.4 }
-    }
-}
-
-impl PairingParams {
-    pub fn validate(&self) -> Result<(), crate::config::ConfigError> {
-        let bad = |field: &str, problem: &str| {
-            Err(crate::config::ConfigError::Invalid { field: format!("pairing.{field}"), problem: problem.into() })
-        };
-        if !(self.min_baseline_m.is_finite() && (0.0..=0.5).contains(&self.min_baseline_m)) {
-            return bad("min_baseline_m", "must be in [0, 0.5] m");
-        }
-        if !(self.max_span_s.is_finite() && self.max_span_s > 0.0 && self.max_span_s <= 5.0) {
-            return bad("max_span_s", "must be in (0, 5] s");
-        }
-        Ok(())
-    }
 }
 
 /// The keyframe and the motion since it.

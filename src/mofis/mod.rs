@@ -36,7 +36,7 @@ pub mod stall;
 pub use fusion::{Ahead, Avoidance, Fusion, MofisOutput, load_default, stop_speed};
 pub use spot::SpotTurn;
 
-use crate::config::ConfigError;
+use crate::config_error::ConfigError;
 use crate::control::ControlLimits;
 use crate::fuzzy::FuzzyError;
 use crate::offis::points::SurfacePoint;
@@ -188,9 +188,7 @@ impl MofisParams {
         if !(self.guard_max_bend.is_finite() && self.guard_max_bend >= 0.0) {
             return bad("guard_max_bend", "must be a turn rate ≥ 0 in rad/s");
         }
-        if let Err((field, problem)) = self.memory.check() {
-            return bad(&format!("memory.{field}"), problem);
-        }
+        self.memory.validate()?;
         self.stall.validate()?;
         self.escape.validate()
     }

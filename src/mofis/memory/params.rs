@@ -1,5 +1,6 @@
 //! The `[mofis.memory]` table: the grid, its decay and the queries' margins.
 
+use crate::config_error::ConfigError;
 use serde::{Deserialize, Serialize};
 
 /// The `[mofis.memory]` config table.
@@ -125,8 +126,8 @@ impl Default for MemoryParams {
 }
 
 impl MemoryParams {
-    /// Range checks; `Err((field, problem))` names the field under `mofis.memory.`.
-    pub fn check(&self) -> Result<(), (&'static str, &'static str)> {
+    /// Range checks; the error names the field under `mofis.memory.`.
+    pub fn validate(&self) -> Result<(), ConfigError> {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         let checks = [
@@ -161,7 +162,7 @@ impl MemoryParams {
             ("max_turn_change", pos(self.max_turn_change), "must be a positive turn rate in rad/s"),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
-            Some((field, _, problem)) => Err((field, problem)),
+            Some((field, _, problem)) => Err(ConfigError::invalid(format!("mofis.memory.{field}"), *problem)),
             None => Ok(()),
         }
     }

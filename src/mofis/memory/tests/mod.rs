@@ -1,4 +1,5 @@
 use super::*;
+use crate::config_error::ConfigError;
 
 fn pt(forward: f64, left: f64) -> SurfacePoint {
     SurfacePoint { forward, left, up: 0.5, radial_px: 3.0 }
@@ -270,8 +271,12 @@ fn a_cell_seen_through_fades_fast_one_not_seen_slowly() {
     let near: Vec<[f64; 2]> = m.occupied().into_iter().filter(|c| c[0] < 2.0).collect();
     assert_eq!(near.len(), 1, "{near:?}");
     assert!(near[0][1] > 0.25, "the cell not seen through survives: {near:?}");
-    assert!(p.check().is_ok());
-    assert_eq!(MemoryParams { occupied: 5.0, ..p }.check(), Err(("max_evidence", "must be ≥ occupied")));
+    assert!(p.validate().is_ok());
+    let e = MemoryParams { occupied: 5.0, ..p }.validate().unwrap_err();
+    assert!(
+        matches!(&e, ConfigError::Invalid { field, problem } if field == "mofis.memory.max_evidence" && problem == "must be ≥ occupied"),
+        "{e:?}"
+    );
 }
 
 #[test]
