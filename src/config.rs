@@ -1,24 +1,21 @@
 //! The TOML configuration file (`--config FILE`): one table per stage, every field optional
 //! with a documented default, unknown fields rejected. Command-line flags override it.
+//!
+//! The aggregate on top: each table is its stage's own params type, with its defaults and its
+//! `validate`; this module only gathers them, and nothing it gathers imports it (their shared
+//! error is the leaf [`crate::config_error`]).
 
+pub use crate::config_error::ConfigError;
 use crate::control::ControlLimits;
 use crate::flow::FlowParams;
 use crate::mofis::MofisParams;
 use crate::offis::OffisParams;
 use crate::pafsis::PafsisParams;
+use crate::pairing::PairingParams;
+use crate::runtime::config::{BaseConfig, RunConfig};
 use hal::v4l2::CameraConfig;
 use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
-
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    #[error("cannot read config file {path}: {source}")]
-    Read { path: PathBuf, source: std::io::Error },
-    #[error("config file {path} is not valid: {message}")]
-    Parse { path: PathBuf, message: String },
-    #[error("config: {field} {problem}")]
-    Invalid { field: String, problem: String },
-}
+use std::path::Path;
 
 /// The whole configuration.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -26,7 +23,7 @@ pub enum ConfigError {
 pub struct Config {
     pub flow: FlowParams,
     /// `[pairing]`: which earlier frame each frame is paired with for the flow.
-    pub pairing: crate::step::PairingParams,
+    pub pairing: PairingParams,
     pub offis: OffisParams,
     pub pafsis: PafsisParams,
     pub mofis: MofisParams,
@@ -34,9 +31,9 @@ pub struct Config {
     /// `[camera]`: the V4L2 device and the mode to negotiate (see docs/camera.md).
     pub camera: CameraConfig,
     /// `[base]`: the motor base's protocol, port and link settings (see docs/deploy.md).
-    pub base: crate::runtime::config::BaseConfig,
+    pub base: BaseConfig,
     /// `[run]`: the runtime's stall time and run logs (see docs/deploy.md).
-    pub run: crate::runtime::config::RunConfig,
+    pub run: RunConfig,
 }
 
 impl Config {
@@ -59,52 +56,9 @@ impl Config {
         self.control.validate()?;
         self.base.validate()?;
         self.run.validate()?;
-        self.camera
-            .validate()
-            .map_err(|e| ConfigError::Invalid { field: format!("camera.{}", e.field), problem: e.problem })?;
-        self.offis.check().map_err(|(field, problem)| ConfigError::Invalid { field, problem })
-    }
-}
-
-impl FlowParams {
-    /// Checks the parameters on their own (frame-size checks happen when a frame arrives).
-    pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |field: &str, problem: &str| {
-            Err(ConfigError::Invalid { field: format!("flow.{field}"), problem: problem.into() })
-        };
-        if self.rows == 0 || self.cols == 0 {
-            return bad("rows/cols", "must be at least 1");
-        }
-        if let Some(stride) = self.stride {
-            if !(1..=256).contains(&stride) {
-                return bad("stride", "must be in 1..=256 pixels (leave it out for the rows x cols grid)");
-            }
-            if self.placement != crate::flow::Placement::Spread {
-                return bad("stride", "requires placement = \"spread\" (dense mode centres one block per stride cell)");
-            }
-        }
-        if !(4..=256).contains(&self.block) || !self.block.is_multiple_of(2) {
-            return bad("block", "must be an even number of pixels in 4..=256");
-        }
-        if !(1..=64).contains(&self.radius) {
-            return bad("radius", "must be in 1..=64 pixels");
-        }
-        if self.prefilter_radius > crate::flow::prefilter::MAX_RADIUS {
-            return bad("prefilter_radius", "must be in 0..=7 pixels (0 = match raw intensities)");
-        }
-        if self.pyramid_levels > 6 {
-            return bad("pyramid_levels", "must be in 0..=6 (0 or 1 = single level, no coarse-to-fine)");
-        }
-        if !(1..=64).contains(&self.refine_radius) {
-            return bad("refine_radius", "must be in 1..=64 pixels");
-        }
-        if !(self.min_texture.is_finite() && (0.0..=255.0).contains(&self.min_texture)) {
-            return bad("min_texture", "must be a number of grey levels in 0..=255");
-        }
-        if !(self.ambiguity_ratio.is_finite() && (0.0..=16.0).contains(&self.ambiguity_ratio)) {
-            return bad("ambiguity_ratio", "must be a number in 0..=16");
-        }
-        Ok(())
+        // the camera's table is the hal crate's, with its own error
+        self.camera.validate().map_err(|e| ConfigError::invalid(format!("camera.{}", e.field), e.problem))?;
+        self.offis.validate()
     }
 }
 

@@ -2,7 +2,7 @@
 //! turn-rate limits and rate-limited by the acceleration limits (DESIGN.md, "Safety is a feature
 //! with tests"). Anything non-finite becomes an immediate stop.
 
-use crate::config::ConfigError;
+use crate::config_error::ConfigError;
 use hal::BodyVelocity;
 use serde::{Deserialize, Serialize};
 

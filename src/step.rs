@@ -5,9 +5,9 @@
 //! function, so what is tested offline is what drives the robot, and replaying a log through it
 //! reproduces the logged outputs bit for bit on the CPU backend.
 //!
-//! Order inside a step (paper Fig. 3): flow (frame pair) → OFFIS (perception) → obstacle memory
-//! → PAFSIS (goal velocity and angle, or a constant cruise goal without a mission) → free-heading
-//! steering → MOFIS (avoidance, fusion, limiter) → set-point.
+//! Order inside a step (paper Fig. 3): pairing (keyframe) → flow (frame pair) → OFFIS
+//! (perception) → PAFSIS (goal velocity and angle, or a constant cruise goal without a mission)
+//! → MOFIS (obstacle memory, manoeuvres, steering, avoidance, fusion, limiter) → set-point.
 //! Before all of it, a frame from a lens with distortion is undistorted to the pinhole frame
 //! with the calibration's K ([`hal::Undistorter`]); a pinhole calibration leaves it untouched.
 //!
@@ -17,7 +17,7 @@
 //! pair, which is kept until the robot has driven `pairing.min_baseline_m` since it (or
 //! `pairing.max_span_s` passed); then the newest frame becomes the keyframe. Every frame still
 //! gets a step and a set-point; OFFIS gets the pair's whole interval and the odometry averaged
-//! over it, the obstacle memory and PAFSIS the per-frame odometry. At cruise speed (0.35 m/s)
+//! over it, MOFIS and PAFSIS the per-frame odometry. At cruise speed (0.35 m/s)
 //! a keyframe lasts four frames, when creeping every frame of the last `max_span_s`.
 //! 4 cm rather than 2: the radial flow per pair doubles for the same depth, so the matching
 //! error is half as large a part of it (in the office sim, surface points within 15 % of the
@@ -25,14 +25,13 @@
 
 use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
-use crate::mofis::escape::Escape;
 use crate::mofis::memory::ObstacleMemory;
-use crate::mofis::stall::{Manoeuvre, StallRecovery};
-use crate::mofis::{Ahead, Mofis, MofisError, MofisOutput, SpotTurn, stop_speed};
+use crate::mofis::{Mofis, MofisError, MofisInput, MofisOutput, MofisStep, Route};
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
 use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
+pub use crate::pairing::PairingParams;
 use crate::perception::{Obstacle, Perception};
 use crate::rotation::TurnCompensation;
 use hal::{BodyVelocity, Calibration, Frame, LumaImage, Undistorter};
@@ -63,57 +62,6 @@ pub enum PipelineError {
     Plan(#[from] PlanError),
     #[error(transparent)]
     Offis(#[from] crate::offis::ClassifyError),
-}
-
-/// Steering around remembered obstacles ([`ObstacleMemory::steer`]): the path must be free
-/// this far, m; candidate headings within this angle of the robot's heading, in these steps, rad.
-const STEER_LOOKAHEAD_M: f64 = 1.5;
-const STEER_MAX_RAD: f64 = 0.7;
-const STEER_STEP_RAD: f64 = 0.05;
-/// Keeping off side surfaces ([`ObstacleMemory::centring`]): cells up to this far ahead and this
-/// far to the side count, m; the correction's lookahead, m, and its largest angle, rad.
-const CENTRE_WINDOW_M: f64 = 1.5;
-const CENTRE_REACH_M: f64 = 0.9;
-const CENTRE_LOOKAHEAD_M: f64 = 1.5;
-const CENTRE_MAX_RAD: f64 = 0.3;
-/// A stalled robot compares the free path this far to either side, rad.
-const STALL_PROBE_RAD: f64 = 0.8;
-/// The stopping gate looks this far ahead of the robot's origin, m (at the top speed, 0.5 m/s,
-/// braking at 0.8 m/s² takes 0.16 m).
-const STOP_LOOKAHEAD_M: f64 = 1.0;
-/// A stall marks the obstacle memory solid over this arc in front of the robot, rad.
-const CONTACT_ARC_RAD: f64 = 0.5;
-
-/// The `[pairing]` config table: how far back the older frame of each pair lies.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct PairingParams {
-    /// The keyframe is replaced once the robot has driven this far since it, m (0: pair
-    /// consecutive frames, as the paper does).
-    pub min_baseline_m: f64,
-    /// ... or once it is this old, s.
-    pub max_span_s: f64,
-}
-
-impl Default for PairingParams {
-    fn default() -> Self {
-        Self { min_baseline_m: 0.04, max_span_s: 0.4 }
-    }
-}
-
-impl PairingParams {
-    pub fn validate(&self) -> Result<(), crate::config::ConfigError> {
-        let bad = |field: &str, problem: &str| {
-            Err(crate::config::ConfigError::Invalid { field: format!("pairing.{field}"), problem: problem.into() })
-        };
-        if !(self.min_baseline_m.is_finite() && (0.0..=0.5).contains(&self.min_baseline_m)) {
-            return bad("min_baseline_m", "must be in [0, 0.5] m");
-        }
-        if !(self.max_span_s.is_finite() && self.max_span_s > 0.0 && self.max_span_s <= 5.0) {
-            return bad("max_span_s", "must be in (0, 5] s");
-        }
-        Ok(())
-    }
 }
 
 /// The keyframe and the motion since it.
@@ -148,8 +96,9 @@ pub struct StepOutput {
     /// OFFIS obstacle. The other side's threat is avoided too (its share is in
     /// `mofis.avoidance`) but not kept here.
     pub avoided: Obstacle,
+    /// PAFSIS's goal after MOFIS's manoeuvres (stall recovery, escape, spot turn).
     pub goal: Goal,
-    /// `goal` after steering around remembered obstacles: what MOFIS was given.
+    /// `goal` after steering around remembered obstacles: what MOFIS's fuzzy core was given.
     pub steered: Goal,
     pub mofis: MofisOutput,
 }
@@ -169,6 +118,26 @@ enum Navigator {
     Cruise(f64),
 }
 
+impl Navigator {
+    /// The goal for this frame.
+    fn goal(&mut self, perception: &Perception, odometry: BodyVelocity, frame_dt: f64) -> Goal {
+        match self {
+            Navigator::Mission(pafsis) => pafsis.step(perception, odometry, frame_dt),
+            Navigator::Cruise(v) => Goal { velocity: *v, angle_rad: 0.0, status: GoalStatus::Active },
+        }
+    }
+
+    /// What the plan says about the way (nothing when cruising).
+    fn route(&self) -> Route {
+        match self {
+            Navigator::Mission(pafsis) => {
+                Route { lane: pafsis.lane(), doorway: pafsis.doorway(), stop_ahead_m: pafsis.stop_ahead_m() }
+            }
+            Navigator::Cruise(_) => Route::default(),
+        }
+    }
+}
+
 /// The per-frame pipeline and its state.
 pub struct Pipeline {
     calib: Calibration,
@@ -185,21 +154,9 @@ pub struct Pipeline {
     offis: Offis,
     navigator: Navigator,
     mofis: Mofis,
-    memory: ObstacleMemory,
     points: Vec<SurfacePoint>,
     pairing: PairingParams,
     key: Option<Keyframe>,
-    /// MOFIS's sensing range (the free path is measured up to it), m.
-    mofis_range: f64,
-    stall: StallRecovery,
-    /// The set-point of the previous step (what the odometry of this step should show).
-    last_setpoint: BodyVelocity,
-    spot_turn: SpotTurn,
-    escape: Escape,
-    /// The stopping gate's margin, m, and deceleration, m/s² ([`crate::mofis::Ahead`]).
-    stop_gate: (f64, f64),
-    /// The footprint guard's clearance (m) and evidence ([`crate::mofis::MofisParams::guard_evidence`]).
-    guard: (f64, f64),
 }
 
 impl Pipeline {
@@ -207,29 +164,19 @@ impl Pipeline {
     /// otherwise the robot cruises straight ahead at `pafsis.cruise_speed` while avoiding.
     pub fn new(cfg: &Config, calib: Calibration, mission: Option<(TopoMap, Mission)>) -> Result<Self, PipelineError> {
         let (flow, backend) = flow::create_engine(&cfg.flow)?;
-        let mofis = Mofis::load(cfg.mofis.clone(), cfg.control.clone())?;
+        let mofis = Mofis::new(cfg.mofis.clone(), cfg.control.clone(), &calib)?;
         let navigator = match mission {
             Some((map, mission)) => Navigator::Mission(Box::new(Pafsis::new(map, mission, cfg.pafsis.clone())?)),
             None => Navigator::Cruise(cfg.pafsis.cruise_speed),
         };
-        let half_fov = ((calib.camera.width as f64 / 2.0) / calib.camera.fx).atan();
-        let memory = ObstacleMemory::new(cfg.mofis.memory, half_fov, calib.mount.z_m);
         Ok(Self {
             calib,
             frame_calib: None,
             undistorter: None,
             undistorted: LumaImage::default(),
-            memory,
             points: Vec::new(),
             pairing: cfg.pairing,
             key: None,
-            mofis_range: cfg.mofis.sensing_range_m,
-            stall: StallRecovery::new(cfg.mofis.stall, cfg.control.max_reverse_speed > 0.0),
-            last_setpoint: BodyVelocity::ZERO,
-            spot_turn: SpotTurn::new(&cfg.mofis),
-            escape: Escape::new(cfg.mofis.escape),
-            stop_gate: (cfg.mofis.stop_margin_m, cfg.mofis.stop_decel_mps2),
-            guard: (cfg.mofis.guard_clearance_m, cfg.mofis.guard_evidence),
             flow,
             turn: TurnCompensation::default(),
             backend,
@@ -255,21 +202,26 @@ impl Pipeline {
         &self.points
     }
 
-    /// The obstacle memory.
+    /// The MOFIS stage.
+    pub fn mofis(&self) -> &Mofis {
+        &self.mofis
+    }
+
+    /// MOFIS's obstacle memory.
     pub fn memory(&self) -> &ObstacleMemory {
-        &self.memory
+        self.mofis.memory()
     }
 
     /// How many times the robot found itself pushing against something and turned away
     /// ([`crate::mofis::stall`]).
     pub fn stall_recoveries(&self) -> u32 {
-        self.stall.recoveries()
+        self.mofis.stall_recoveries()
     }
 
     /// How many times the robot stood still too long and turned to a free heading
     /// ([`crate::mofis::escape`]).
     pub fn escapes(&self) -> u32 {
-        self.escape.escapes()
+        self.mofis.escapes()
     }
 
     /// The PAFSIS planner, when running a mission.
@@ -297,12 +249,7 @@ impl Pipeline {
     pub fn fail_safe(&mut self) -> BodyVelocity {
         self.key = None;
         self.offis.reset_filter();
-        self.memory.clear();
-        self.stall.reset();
-        self.escape.reset();
-        self.spot_turn.reset();
-        self.last_setpoint = BodyVelocity::ZERO;
-        self.mofis.fallback()
+        self.mofis.fail_safe()
     }
 
     /// One step. The first frame only primes the pipeline (`Ok(None)`); each later frame gives
@@ -340,7 +287,7 @@ impl Pipeline {
         // the TPO is decided over the last steps: OFFIS needs the turn since its previous step
         let since = Motion { yaw_rad: odometry.omega * frame_dt, dt: frame_dt };
         let perception = self.offis.step_filtered(&flow, span, dt, &calib, since)?;
-        let measured = self.memory.measurable(span, dt, key.turn_change);
+        let measured = self.mofis.measurable(span, dt, key.turn_change);
         let (seq, t_ns) = (frame.seq, frame.t_ns);
         if key.travel_m.abs() >= self.pairing.min_baseline_m || dt >= self.pairing.max_span_s {
             *key = Keyframe {
@@ -352,103 +299,15 @@ impl Pipeline {
                 last_omega: Some(odometry.omega),
             };
         }
-        let goal = match &mut self.navigator {
-            Navigator::Mission(pafsis) => pafsis.step(&perception, odometry, frame_dt),
-            Navigator::Cruise(v) => Goal { velocity: *v, angle_rad: 0.0, status: GoalStatus::Active },
-        };
-        let m = &calib.mount;
-        let mp = *self.memory.params();
+        let goal = self.navigator.goal(&perception, odometry, frame_dt);
+        // the solid surface points, filtered as MOFIS's obstacle memory takes them in
+        let (m, mp) = (&calib.mount, self.mofis.memory().params());
         let (min_radial, max_tangential) = (mp.min_radial_px, mp.max_tangential);
         self.offis.surface_points([m.x_m, m.y_m, m.z_m], min_radial, max_tangential, &mut self.points);
-        self.memory.update(odometry, frame_dt, &self.points, measured);
-        // the corridor from the map: for the memory's queries, the escape and the steering
-        self.memory.set_lane(self.pafsis().and_then(Pafsis::lane));
-        self.memory.set_doorway(self.pafsis().and_then(Pafsis::doorway));
-        // where the plan stops the robot (before a turn, at the goal): nothing beyond is in its way
-        let stop_ahead = match &self.navigator {
-            Navigator::Mission(pafsis) => pafsis.stop_ahead_m(),
-            Navigator::Cruise(_) => None,
-        };
-        let stop_ahead = stop_ahead.unwrap_or(f64::INFINITY);
-        self.memory.set_stop(stop_ahead);
-        let horizon = self.memory.horizon(stop_ahead);
-        // the nearest threat, and the nearest on the other side of the heading: MOFIS avoids both
-        let (avoided, other) = crate::mofis::memory::nearer(self.memory.threat_sides(stop_ahead));
-        // pushing against something unseen: turn away on the spot, to the freer side
-        let memory = &self.memory;
-        let recoveries_before = self.stall.recoveries();
-        let turn_away = self.stall.update(self.last_setpoint, odometry, frame_dt, || {
-            let (left, right) = (
-                memory.free_distance(STALL_PROBE_RAD, STEER_LOOKAHEAD_M),
-                memory.free_distance(-STALL_PROBE_RAD, STEER_LOOKAHEAD_M),
-            );
-            match left - right {
-                d if d > memory.params().cell_m => 1.0,
-                d if d < -memory.params().cell_m => -1.0,
-                _ => goal.angle_rad.signum(),
-            }
-        });
-        if self.stall.recoveries() > recoveries_before {
-            // what the robot pushed against is there, whether the camera saw it or not
-            self.memory.mark_contact(CONTACT_ARC_RAD);
-        }
-        let goal = match turn_away {
-            Some(m) if goal.status == GoalStatus::Active => match m {
-                Manoeuvre::Reverse(speed) => Goal { velocity: -speed, angle_rad: 0.0, ..goal },
-                Manoeuvre::Turn(angle_rad) => Goal { velocity: 0.0, angle_rad, ..goal },
-            },
-            _ => goal,
-        };
-        let lookahead = STEER_LOOKAHEAD_M.min(horizon);
-        // standing still too long: turn to the free heading nearest the goal, round the full
-        // circle, and drive off that way (a stall recovery's manoeuvre goes first)
-        let goal = match turn_away {
-            None => {
-                let (memory, yaw) = (&self.memory, self.memory.yaw());
-                let look = self.escape.params().lookahead_m;
-                self.escape.apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| memory.free_in_lane(h, look))
-            }
-            Some(_) => goal,
-        };
-        // a goal far off the heading is turned to on the spot first
-        let memory = &self.memory;
-        let goal = self.spot_turn.apply(goal, || memory.free_distance(goal.angle_rad, lookahead) >= lookahead);
-        // turns on the spot keep their angle; driving picks a free heading
-        let steered = match goal.velocity > 0.0 {
-            true => {
-                let centred = goal.angle_rad
-                    + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                let angle_rad = self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD);
-                Goal { angle_rad, ..goal }
-            }
-            false => goal,
-        };
-        // the distance ahead: the free path along the heading in the memory (the TPO's wall
-        // distance is one frame's guess; the memory has what was seen solid, over frames), and
-        // nothing there (the sensing range) when the path is free up to where the robot stops
-        let free = self.memory.free_distance(0.0, self.mofis_range);
-        let front = match free >= horizon {
-            true => self.mofis_range,
-            false => free - mp.robot_radius_m,
-        };
-        // the stopping gate: never faster than the robot can stop short of what is in its way
-        let (margin, decel) = self.stop_gate;
-        let in_way = self.memory.free_width(0.0, mp.robot_radius_m + margin, STOP_LOOKAHEAD_M);
-        // and short of the door's wall, from the map, when going through a door
-        let door = self.memory.door_free_ahead(STOP_LOOKAHEAD_M);
-        let stop_speed_mps = stop_speed(in_way - mp.robot_radius_m - margin, decel).min(stop_speed(door, decel));
-        let ahead = Ahead { front_m: front.max(0.0), stop_speed_mps };
-        let view = Perception { obstacle: avoided, ..perception.clone() };
-        // the footprint guard: the arcs against every remembered cell, faded ones included
-        let (memory, guard) = (&self.memory, self.guard);
-        let arc_free =
-            move |curvature: f64, reach: f64, aside: bool| memory.arc_free(curvature, reach, guard.0, guard.1, aside);
-        let mofis = self.mofis.step_guarded(&view, other.as_ref(), Some(ahead), &steered, frame_dt, Some(&arc_free))?;
-        self.last_setpoint = mofis.setpoint;
-        match turn_away {
-            None => self.escape.observe(&goal, mofis.setpoint.v, frame_dt),
-            Some(_) => self.escape.reset_standstill(),
-        }
+        let route = self.navigator.route();
+        let input =
+            MofisInput { perception: &perception, points: &self.points, measured, odometry, dt: frame_dt, goal, route };
+        let MofisStep { avoided, goal, steered, output: mofis } = self.mofis.step(input)?;
         Ok(Some(StepOutput { seq, t_ns, dt, prev_t_ns, flow, perception, avoided, goal, steered, mofis }))
     }
 

@@ -364,11 +364,11 @@ mod mofis {
     use super::*;
     use flownav::control::ControlLimits;
     use flownav::fuzzy::FuzzySystem;
-    use flownav::mofis::{Mofis, MofisError, MofisParams, load_default};
+    use flownav::mofis::{Fusion, MofisError, MofisParams, load_default};
     use flownav::pafsis::Goal;
     use flownav::perception::Obstacle;
 
-    fn mofis() -> Mofis {
+    fn mofis() -> Fusion {
         load_default(concat!(env!("CARGO_MANIFEST_DIR"), "/rules/mofis"), ControlLimits::default()).unwrap()
     }
 
@@ -478,7 +478,7 @@ mod mofis {
         // (0.5 / 0.245 > 0.6 / 0.35), and that is the fastest clear arc (0.35 rad/s at
         // 0.245 m/s is not)
         let slower = MofisParams { guard_slow: true, ..MofisParams::default() };
-        let mut m = Mofis::load(slower.clone(), ControlLimits::default()).unwrap();
+        let mut m = Fusion::load(slower.clone(), ControlLimits::default()).unwrap();
         let slow = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
         assert!((slow.fused.v - 0.7 * 0.35).abs() < 1e-12, "{slow:?}");
         assert!((slow.fused.omega + 0.5 * max_turn).abs() < 1e-12, "{slow:?}");
@@ -490,11 +490,11 @@ mod mofis {
         let mut m = mofis();
         let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert_eq!(out.fused, free.fused, "{out:?}");
-        let mut m = Mofis::load(slower.clone(), ControlLimits::default()).unwrap();
+        let mut m = Fusion::load(slower.clone(), ControlLimits::default()).unwrap();
         let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert_eq!(out.fused, free.fused, "{out:?}");
         let braking = MofisParams { guard_brake: true, ..slower };
-        let brake = || Mofis::load(braking.clone(), ControlLimits::default()).unwrap();
+        let brake = || Fusion::load(braking.clone(), ControlLimits::default()).unwrap();
         let out = brake().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert!((out.fused.v - (2.0f64 * 0.8 * 0.05).sqrt()).abs() < 1e-12, "{out:?}");
         assert_eq!(out.fused.omega, 0.0, "{out:?}");
@@ -519,7 +519,7 @@ mod mofis {
         assert!(back.fused.v < 0.0, "{back:?}");
         // off (guard_evidence 0): never asked
         let params = MofisParams { guard_evidence: 0.0, ..MofisParams::default() };
-        let mut off = Mofis::load(params, ControlLimits::default()).unwrap();
+        let mut off = Fusion::load(params, ControlLimits::default()).unwrap();
         let out = off.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&never)).unwrap();
         assert_eq!(out.fused, free.fused);
     }
@@ -681,7 +681,7 @@ mod mofis {
         let fusion = FuzzySystem::from_toml_str(text, "myfusion.toml").unwrap();
         let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/rules/mofis/avoidance.toml");
         let avoidance = FuzzySystem::from_file(dir).unwrap();
-        let e = Mofis::new(MofisParams::default(), ControlLimits::default(), avoidance, fusion).unwrap_err();
+        let e = Fusion::new(MofisParams::default(), ControlLimits::default(), avoidance, fusion).unwrap_err();
         assert!(matches!(e, MofisError::Missing { name: "weight", .. }), "{e}");
         assert!(e.to_string().contains("myfusion.toml") && e.to_string().contains("'weight'"), "{e}");
     }

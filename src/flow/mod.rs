@@ -25,7 +25,7 @@ pub mod sad;
 
 pub use backend::{BackendReport, create_engine};
 
-use crate::config::ConfigError;
+use crate::config_error::ConfigError;
 use hal::LumaImage;
 use serde::{Deserialize, Serialize};
 
@@ -199,6 +199,46 @@ impl FlowParams {
     /// `ambiguity_ratio` in 1/256 units, as the contract compares it.
     pub fn ambiguity_q8(&self) -> u64 {
         (f64::from(self.ambiguity_ratio) * 256.0).round().max(0.0) as u64
+    }
+
+    /// Checks the parameters on their own (frame-size checks happen when a frame arrives).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &str, problem: &str| {
+            Err(ConfigError::Invalid { field: format!("flow.{field}"), problem: problem.into() })
+        };
+        if self.rows == 0 || self.cols == 0 {
+            return bad("rows/cols", "must be at least 1");
+        }
+        if let Some(stride) = self.stride {
+            if !(1..=256).contains(&stride) {
+                return bad("stride", "must be in 1..=256 pixels (leave it out for the rows x cols grid)");
+            }
+            if self.placement != Placement::Spread {
+                return bad("stride", "requires placement = \"spread\" (dense mode centres one block per stride cell)");
+            }
+        }
+        if !(4..=256).contains(&self.block) || !self.block.is_multiple_of(2) {
+            return bad("block", "must be an even number of pixels in 4..=256");
+        }
+        if !(1..=64).contains(&self.radius) {
+            return bad("radius", "must be in 1..=64 pixels");
+        }
+        if self.prefilter_radius > prefilter::MAX_RADIUS {
+            return bad("prefilter_radius", "must be in 0..=7 pixels (0 = match raw intensities)");
+        }
+        if self.pyramid_levels > 6 {
+            return bad("pyramid_levels", "must be in 0..=6 (0 or 1 = single level, no coarse-to-fine)");
+        }
+        if !(1..=64).contains(&self.refine_radius) {
+            return bad("refine_radius", "must be in 1..=64 pixels");
+        }
+        if !(self.min_texture.is_finite() && (0.0..=255.0).contains(&self.min_texture)) {
+            return bad("min_texture", "must be a number of grey levels in 0..=255");
+        }
+        if !(self.ambiguity_ratio.is_finite() && (0.0..=16.0).contains(&self.ambiguity_ratio)) {
+            return bad("ambiguity_ratio", "must be a number in 0..=16");
+        }
+        Ok(())
     }
 }
 

@@ -15,7 +15,7 @@
 //! ([`crate::mofis::SpotTurn`]), which cannot run a round robot into anything.
 //! This is the rotate-and-go recovery of a ROS navigation stack, driven by the memory.
 
-use crate::config::ConfigError;
+use crate::config_error::ConfigError;
 use crate::pafsis::map::wrap_angle;
 use crate::pafsis::{Goal, GoalStatus};
 use serde::{Deserialize, Serialize};

@@ -17,7 +17,7 @@
 //! A phase that gets nothing done within `phase_timeout_s` (wheels blocked outright) gives up,
 //! so the caller's own safety paths (stop on failure) stay in charge.
 
-use crate::config::ConfigError;
+use crate::config_error::ConfigError;
 use hal::BodyVelocity;
 use serde::{Deserialize, Serialize};
 

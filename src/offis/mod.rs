@@ -35,6 +35,7 @@ pub mod structure;
 pub mod synth;
 pub mod temporal;
 
+use crate::config_error::ConfigError;
 use crate::flow::FlowField;
 use crate::perception::{Obstacle, Perception, Tpo, TpoShape};
 use classify::Classifier;
@@ -85,8 +86,8 @@ pub struct OffisParams {
 }
 
 impl OffisParams {
-    /// Range checks; `Err((field, problem))` names the offending field under `offis.`.
-    pub fn check(&self) -> Result<(), (String, String)> {
+    /// Range checks; the error names the offending field under `offis.`.
+    pub fn validate(&self) -> Result<(), ConfigError> {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         let t = &self.temporal;
@@ -127,7 +128,7 @@ impl OffisParams {
             ),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
-            Some((field, _, problem)) => Err((format!("offis.{field}"), problem.to_string())),
+            Some((field, _, problem)) => Err(ConfigError::invalid(format!("offis.{field}"), *problem)),
             None => Ok(()),
         }
     }

@@ -372,8 +372,11 @@ fn step_filtered_holds_the_class_through_one_odd_pair_and_forgets_it_after_a_tur
 #[test]
 fn the_temporal_table_is_range_checked() {
     let ok = OffisParams::default();
-    assert_eq!(ok.check(), Ok(()));
-    let bad = |temporal| OffisParams { temporal, ..OffisParams::default() }.check().unwrap_err().0;
+    assert!(ok.validate().is_ok());
+    let bad = |temporal| match (OffisParams { temporal, ..OffisParams::default() }).validate().unwrap_err() {
+        crate::config_error::ConfigError::Invalid { field, .. } => field,
+        e => panic!("{e}"),
+    };
     let t = temporal::TemporalParams::default();
     assert_eq!(bad(temporal::TemporalParams { window: 0, ..t }), "offis.temporal.window");
     assert_eq!(bad(temporal::TemporalParams { decay: 1.5, ..t }), "offis.temporal.decay");

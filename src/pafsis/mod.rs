@@ -11,7 +11,7 @@ pub use global::{Mission, Plan, PlanError, plan};
 pub use local::{Doorway, Goal, GoalStatus, Lane, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress};
 pub use map::{Action, MapError, PlaceKind, Side, TopoMap, Until};
 
-use crate::config::ConfigError;
+use crate::config_error::ConfigError;
 use serde::{Deserialize, Serialize};
 
 /// The `[pafsis]` config table: speeds of the goal behaviour and how landmarks are trusted.

@@ -4,7 +4,7 @@
 //! the runtime's own safety timing and where run logs go. `--base fnp:PORT|kobuki:PORT` overrides
 //! `[base] kind` and `port`.
 
-use crate::config::ConfigError;
+use crate::config_error::ConfigError;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::path::PathBuf;
