@@ -1,5 +1,5 @@
 #!/bin/sh
-# The closed-loop benchmark of issue 6 item 5: mission R9:D2 in the built-in office, one run per
+# The closed-loop mission benchmark: mission R9:D2 in the built-in office, one run per
 # seed (random obstacle placement + sensor/encoder noise), release build, no logs. Prints one JSON
 # summary per seed, then the aggregate line (success rate, collisions, time, clearance, wall time,
 # realtime factor). Extra arguments go to `flownav sim` (e.g. --size 640x360, --max-time 120).

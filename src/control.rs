@@ -24,13 +24,13 @@ pub struct ControlLimits {
     /// Maximum change of omega, rad/s². 1.5 by default: the obstacle memory takes in a frame
     /// pair only while the turn rate changed by at most `mofis.memory.max_turn_change`
     /// (0.05 rad/s) between steps; with 3 rad/s² an avoidance turn that flips side blinded the
-    /// memory for seconds (13 % of the frames taken in while passing a person, seed 16), and
+    /// memory for seconds (13 % of the frames taken in while passing a person), and
     /// the robot forgot what it was passing. 1.5 rad/s² is 0.05 rad/s per 33 ms frame, but the
     /// base's odometry comes at 50 Hz, so the samples of two successive frames are often 40 ms
     /// apart: at this limit they differ by 0.06 rad/s (+ encoder noise), and such pairs are
-    /// still not taken in (seed 16, first 100 s: 621 of 1419 moving pairs turning under
+    /// still not taken in (in a measured pass, 621 of 1419 moving pairs turning under
     /// 0.3 rad/s, nearly all at 0.0635). Lower limits measure more but turn slower: 1.1 rad/s²
-    /// was tried (README, Missions) and was slower without fewer contacts.
+    /// was slower without fewer contacts (docs/missions-history.md).
     pub max_angular_accel: f64,
 }
 

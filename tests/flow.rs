@@ -97,7 +97,7 @@ fn epe(field: &FlowField, gt: &[GtBlock], keep: impl Fn(&GtBlock) -> bool) -> (f
     (sum / n as f64, n, valid)
 }
 
-/// The README's promise: an exhaustive 32×32 matcher with radius 16 returns exactly (5, −3)
+/// The documented figure (docs/results.md): an exhaustive 32×32 matcher with radius 16 returns exactly (5, −3)
 /// for every tile whose target lies inside image 1 (225 of 256). The default spread placement
 /// tiles 512×512 exactly, so the default parameters are used unchanged.
 #[test]

@@ -11,7 +11,7 @@ pub struct Args {
     /// Number of scenes (they cycle wall, corner, door, corridor, none).
     #[arg(long, default_value_t = 200)]
     pub scenes: usize,
-    /// Seed of the scene set (rules and TPO filter tuned on seeds 1, 3, 4, 5; 9, 10, 11 held out).
+    /// Seed of the scene set (docs/results.md says which seeds tuned the rules and which report).
     #[arg(long, default_value_t = 2)]
     pub seed: u64,
     /// Render at this size instead of the calibration's (`WxH`, intrinsics scaled).

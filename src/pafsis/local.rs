@@ -752,7 +752,7 @@ impl Pafsis {
     /// the dead-reckoned position already is, `length − (end − position)·direction`, at least
     /// `−length` and at most `length`. A robot that swerved 0.5 m to one side of a corridor
     /// and then turns into a door 0.5 m ahead of the centre line must drive 1 m, not 0.5 m
-    /// (the sim's seeds 1 and 7 arrived 0.53–0.57 m short).
+    /// (counting only the leg's length, such runs arrived 0.53–0.57 m short in the simulator).
     fn already_along(&self, index: usize) -> f64 {
         let Some(leg) = self.legs.get(index) else { return 0.0 };
         let length = match &leg.kind {
