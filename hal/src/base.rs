@@ -80,7 +80,3 @@ pub trait MotorBase: Send {
         LinkStats::default()
     }
 }
-
-/// The drivers stamp odometry with the clock of the frames ([`crate::camera::monotonic_ns`]), so
-/// the step compares odometry and frame times directly.
-pub use crate::camera::monotonic_ns as host_now_ns;

@@ -19,7 +19,8 @@
 //! refreshed a non-zero command within `command_timeout`, and sends zero on drop and on exit
 //! (the shared serial task, [`crate::serial_task`], does all three).
 
-use crate::base::{BaseEvent, BaseStatus, LinkStats, MotorBase, host_now_ns};
+use crate::base::{BaseEvent, BaseStatus, LinkStats, MotorBase};
+use crate::camera::monotonic_ns;
 use crate::motion::{BodyVelocity, Odometry};
 use crate::serial_task::{
     Backoff, ClockMapper, Connector, Protocol, SerialBaseError, SerialConnector, SerialTask, Shared, TaskTiming,
@@ -464,11 +465,11 @@ impl Protocol for Kobuki {
             self.left.rebase();
             self.right.rebase();
             self.last = None;
-            self.on_sensors(*cs, host_now_ns(), push);
+            self.on_sensors(*cs, monotonic_ns(), push);
             tracing::info!(port, "Kobuki base reconnected");
         } else {
             tracing::info!(port, "Kobuki base connected");
-            self.on_sensors(*cs, host_now_ns(), push);
+            self.on_sensors(*cs, monotonic_ns(), push);
         }
     }
 

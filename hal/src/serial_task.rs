@@ -566,7 +566,7 @@ impl<P: Protocol, C: Connector> Link<P, C> {
                     Ok(n) => {
                         last_rx = Instant::now();
                         let (events_tx, shared) = (&self.events_tx, &self.shared);
-                        let host_ns = crate::base::host_now_ns();
+                        let host_ns = crate::camera::monotonic_ns();
                         self.protocol.on_bytes(&buf[..n], host_ns, &self.port, shared, &mut |ev| {
                             push(events_tx, shared, Ok(ev))
                         });
