@@ -117,7 +117,7 @@ impl Calibration {
         if c.distortion.iter().any(|k| !k.is_finite()) {
             return bad("camera.distortion", "must be finite numbers");
         }
-        if let Err(problem) = crate::undistort::check_model(c) {
+        if let Err(problem) = crate::lens::check_model(&c.distortion, [c.fx, c.fy, c.cx, c.cy], (c.width, c.height)) {
             return bad(
                 "camera.distortion",
                 &format!(

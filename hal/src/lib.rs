@@ -7,6 +7,7 @@
 //! |---|---|
 //! | [`image`] | [`LumaImage`], the 8-bit grey frame every stage works on, and [`Frame`] (image + capture time) |
 //! | [`calib`] | [`Calibration`]: pinhole intrinsics, distortion, and where the camera sits on the robot (`calib/*.toml`) |
+//! | [`lens`] | the plumb_bob lens model on normalized coordinates, its inverse, and the check that coefficients are a lens over an image |
 //! | [`undistort`] | the plumb_bob lens model and its inverse, [`Undistorter`]: a distorted frame → the pinhole frame with the same K |
 //! | [`motion`] | [`BodyVelocity`] (a set-point or a measurement, REP-103), [`Odometry`], [`motion::wrap_angle`] |
 //! | [`error`] | [`ErrorKind`]: what the runtime does about a hardware error (reconnect, stop, skip, report) |
@@ -28,6 +29,7 @@ pub mod fnp;
 pub mod fnp_driver;
 pub mod image;
 pub mod kobuki;
+pub mod lens;
 pub mod mjpeg;
 pub mod motion;
 pub mod serial_task;

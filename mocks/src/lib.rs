@@ -7,7 +7,8 @@
 //! | [`world`] | worlds as TOML floor plans (walls, doors, boxes, cylinders, named places, start), validation, random obstacle placement |
 //! | [`render`] | the CPU ray caster: camera view (8-bit luma), depth map, surface ids, noise/exposure/motion blur |
 //! | [`texture`] | the world-anchored procedural texture with its mip pyramid |
-//! | [`camera`] | camera pose from robot pose + mount, optical ↔ world transforms, [`RenderedCamera`] (`hal::Camera`) |
+//! | [`camera`] | camera pose from robot pose + mount, optical ↔ world transforms |
+//! | [`rendered_camera`] | [`RenderedCamera`], the simulated `hal::Camera` that renders from a pose source |
 //! | [`truth`] | ground truth: TPO class by DESIGN.md geometry ([`truth::tpo`] thresholds), nearest obstacle, exact motion field |
 //! | [`scene`] | canonical scenes built in code (wall, corner, door, corridor, empty) for labelled benchmarks |
 //! | [`pty`] | raw-mode pseudo-terminals that stand in for serial ports |
@@ -21,6 +22,7 @@ pub mod faults;
 pub mod kinematics;
 pub mod pty;
 pub mod render;
+pub mod rendered_camera;
 pub mod scene;
 pub mod sim_base;
 pub mod sim_kobuki;
@@ -28,7 +30,8 @@ pub mod texture;
 pub mod truth;
 pub mod world;
 
-pub use camera::{CameraPose, Pacing, RenderedCamera};
+pub use camera::CameraPose;
 pub use render::{DepthMap, Effects, Renderer};
+pub use rendered_camera::{Pacing, RenderedCamera};
 pub use truth::{FrameTruth, GroundTruth, MotionField, TpoClass};
 pub use world::{Pose, World, WorldError};
