@@ -73,20 +73,19 @@ pub fn shift_frame(b: &LumaImage, [dx, dy]: [i32; 2], out: &mut LumaImage) {
     let (w, h) = (b.width(), b.height());
     out.resize(w, h);
     let src = b.data();
-    let clamp = |v: i64, n: usize| v.clamp(0, n as i64 - 1) as usize;
+    // the columns that come from inside B, the same on every row; the rest repeat its border
+    let lo = (-(dx as i64)).clamp(0, w as i64) as usize;
+    let hi = (w as i64 - dx as i64).clamp(lo as i64, w as i64) as usize;
     for (y, row) in out.data_mut().chunks_exact_mut(w).enumerate() {
-        let sy = clamp(y as i64 + dy as i64, h);
+        let sy = (y as i64 + dy as i64).clamp(0, h as i64 - 1) as usize;
         let src_row = &src[sy * w..(sy + 1) * w];
-        // the columns that come from inside B, copied in one go; the rest repeat its border
-        let lo = (-(dx as i64)).clamp(0, w as i64) as usize;
-        let hi = (w as i64 - dx as i64).clamp(0, w as i64) as usize;
         if lo < hi {
             let from = (lo as i64 + dx as i64) as usize;
             row[lo..hi].copy_from_slice(&src_row[from..from + (hi - lo)]);
         }
         let (first, last) = (src_row[0], src_row[w - 1]);
         row[..lo].fill(first);
-        row[hi.max(lo)..].fill(last);
+        row[hi..].fill(last);
     }
 }
 

@@ -61,6 +61,13 @@ pub struct Calibration {
     pub mount: Mount,
 }
 
+impl Intrinsics {
+    /// Checks that `distortion` is a lens model over this image ([`crate::lens::check_model`]).
+    pub fn check_lens(&self) -> Result<(), String> {
+        crate::lens::check_model(&self.distortion, [self.fx, self.fy, self.cx, self.cy], (self.width, self.height))
+    }
+}
+
 impl Calibration {
     /// Nominal Logitech C310 at 1280×720 (the same numbers as `calib/c310.toml`).
     pub fn nominal_c310() -> Self {
@@ -117,7 +124,7 @@ impl Calibration {
         if c.distortion.iter().any(|k| !k.is_finite()) {
             return bad("camera.distortion", "must be finite numbers");
         }
-        if let Err(problem) = crate::lens::check_model(&c.distortion, [c.fx, c.fy, c.cx, c.cy], (c.width, c.height)) {
+        if let Err(problem) = c.check_lens() {
             return bad(
                 "camera.distortion",
                 &format!(

@@ -16,9 +16,8 @@
 //! and the distorted frame's outermost field is cropped; with pincushion distortion some of its
 //! pixels lie outside the distorted frame and repeat the nearest edge pixel.
 
-use crate::calib::{Calibration, Intrinsics};
+use crate::calib::Calibration;
 use crate::image::LumaImage;
-use crate::lens;
 pub use crate::lens::{distort_normalized, is_identity, undistort_normalized};
 
 #[derive(Debug, thiserror::Error)]
@@ -31,11 +30,6 @@ pub enum UndistortError {
     TooSmall { width: u32, height: u32 },
     #[error("frame is {got_width}x{got_height} but the undistorter was built for {width}x{height}")]
     Size { width: usize, height: usize, got_width: usize, got_height: usize },
-}
-
-/// Checks that the distortion of `camera` is a lens model over its image ([`lens::check_model`]).
-pub fn check_model(camera: &Intrinsics) -> Result<(), String> {
-    lens::check_model(&camera.distortion, [camera.fx, camera.fy, camera.cx, camera.cy], (camera.width, camera.height))
 }
 
 /// One output pixel's bilinear source: the top-left input pixel and the weights of the right
@@ -66,7 +60,7 @@ impl Undistorter {
     /// The undistorter for frames of `calib`'s size (scale the calibration to the frame size
     /// first, [`Calibration::scaled_to`]). `Ok(None)` for a pinhole (all coefficients zero):
     /// nothing to do, frames stay bit-identical. `Err` when the coefficients are not a lens model
-    /// over the image ([`check_model`]) or the image is smaller than 2×2.
+    /// over the image ([`crate::calib::Intrinsics::check_lens`]) or the image is smaller than 2×2.
     pub fn new(calib: &Calibration) -> Result<Option<Self>, UndistortError> {
         let c = &calib.camera;
         if is_identity(&c.distortion) {
@@ -75,7 +69,7 @@ impl Undistorter {
         if c.width < 2 || c.height < 2 {
             return Err(UndistortError::TooSmall { width: c.width, height: c.height });
         }
-        check_model(c).map_err(|problem| UndistortError::Model {
+        c.check_lens().map_err(|problem| UndistortError::Model {
             coefficients: c.distortion,
             width: c.width,
             height: c.height,

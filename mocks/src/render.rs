@@ -40,7 +40,7 @@ const SKY: f32 = 200.0;
 /// The pinhole image of a distorted lens extends this far beyond the field its pixels see, px.
 const LENS_MARGIN_PX: f64 = 2.0;
 /// A distortion whose pinhole image would be this many times the image's width or height is
-/// not rendered (it is not a lens; [`hal::undistort::check_model`] refuses such models).
+/// not rendered (it is not a lens; [`hal::calib::Intrinsics::check_lens`] refuses such models).
 const LENS_MAX_GROWTH: f64 = 4.0;
 
 /// What a pixel shows.
@@ -211,7 +211,7 @@ struct Hit {
 impl Renderer {
     /// Prepares `world` for rendering with `calib`: image size, intrinsics and lens distortion
     /// from it. A distortion that is not a lens model over the image
-    /// ([`hal::undistort::check_model`], which `Calibration::load` enforces) is not simulated:
+    /// ([`hal::calib::Intrinsics::check_lens`], which `Calibration::load` enforces) is not simulated:
     /// the view is an ideal pinhole's, with a warning.
     pub fn new(world: &World, calib: &Calibration) -> Self {
         let mut renderer = Self::pinhole(world, calib);
@@ -669,7 +669,7 @@ impl Lens {
             tracing::warn!("camera.distortion {:?} {problem}: rendering an ideal pinhole", c.distortion);
             None
         };
-        if let Err(problem) = undistort::check_model(&c) {
+        if let Err(problem) = c.check_lens() {
             return refuse(problem);
         }
         let (width, height) = (c.width as usize, c.height as usize);
