@@ -1,18 +1,22 @@
 //! Differential-drive kinematics for the simulated bases: velocity and acceleration limits,
-//! exact unicycle integration, wheel encoders with seeded noise, and a collision hook.
+//! exact unicycle integration, wheel encoders with seeded noise, wheels that differ from their
+//! nominal size ([`OdometryError`]), and a collision hook.
 //!
-//! The commanded body velocity is clamped to the limits, the actual velocity ramps towards it at
-//! the acceleration limits, and the pose then moves along the exact arc for that (constant)
-//! velocity over the step. Encoders count true wheel travel times `ticks_per_m`, each step's
-//! increment scaled by `1 + σ·N(0,1)`, so odometry drifts from the true pose as on a real base.
-//! Within a step the pose moves at the mean of the old and new velocity, which is exact for a
-//! constant-acceleration straight ramp and for any constant velocity.
+//! The commanded body velocity is clamped to the limits, and the wheel-level velocity (what the
+//! motor controller holds, in the firmware's nominal units) ramps towards it at the acceleration
+//! limits. Encoders count that nominal wheel travel times `ticks_per_m`, each step's increment
+//! scaled by `1 + noise·N(0,1)`. The true pose moves along the exact arc of the *true* body
+//! velocity, which the odometry error derives from the wheel speeds, so dead reckoning from the
+//! ticks drifts from the true pose as on a real base. Within a step the pose moves at the mean of
+//! the old and new velocity, which is exact for a constant-acceleration straight ramp and for any
+//! constant velocity.
 //!
 //! When the caller's collision test says the next pose is in collision, the base does not move,
 //! its velocity drops to zero, its bumper is pressed and a new contact is counted. The bumper
 //! stays pressed until the base has backed off [`BUMPER_TRAVEL_M`] from the obstacle.
 
 use crate::faults::SimRng;
+use crate::odometry_error::OdometryError;
 use hal::BodyVelocity;
 use hal::motion::wrap_angle;
 use std::sync::Arc;
@@ -52,20 +56,28 @@ impl Default for DriveLimits {
     }
 }
 
-/// Geometry, limits and encoder noise of a simulated differential-drive base.
+/// Geometry (nominal, as the firmware knows it), limits and odometry error of a simulated
+/// differential-drive base.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DiffDriveParams {
     pub wheel_base_m: f64,
     pub ticks_per_m: f64,
     pub limits: DriveLimits,
-    /// Relative standard deviation of each step's encoder increment.
-    pub encoder_noise: f64,
+    /// How the true wheels differ from the nominal ones, and the encoders' noise.
+    pub error: OdometryError,
     pub seed: u64,
 }
 
 impl Default for DiffDriveParams {
+    /// Exact wheels with 1 % encoder noise.
     fn default() -> Self {
-        Self { wheel_base_m: 0.33, ticks_per_m: 10_000.0, limits: DriveLimits::default(), encoder_noise: 0.01, seed: 1 }
+        Self {
+            wheel_base_m: 0.33,
+            ticks_per_m: 10_000.0,
+            limits: DriveLimits::default(),
+            error: OdometryError { noise: 0.01, ..OdometryError::NONE },
+            seed: 1,
+        }
     }
 }
 
@@ -139,7 +151,8 @@ impl DiffDrive {
         self.pose = pose;
     }
 
-    /// The actual (not commanded) body velocity.
+    /// The wheel-level body velocity the motor controller holds (nominal units: what exact
+    /// odometry would report; the true motion differs by the odometry error).
     pub fn velocity(&self) -> BodyVelocity {
         self.velocity
     }
@@ -175,7 +188,10 @@ impl DiffDrive {
         let v = ramp(self.velocity.v, v_cmd, lim.max_accel);
         let omega = ramp(self.velocity.omega, w_cmd, lim.max_alpha);
         let (v_mean, w_mean) = (0.5 * (self.velocity.v + v), 0.5 * (self.velocity.omega + omega));
-        let next = integrate(&self.pose, v_mean, w_mean, dt);
+        let half = 0.5 * self.params.wheel_base_m * w_mean;
+        let (u_l, u_r) = (v_mean - half, v_mean + half);
+        let (v_true, w_true) = self.params.error.true_body_velocity(u_l, u_r, self.params.wheel_base_m);
+        let next = integrate(&self.pose, v_true, w_true, dt);
         if self.collision.as_ref().is_some_and(|hit| hit(&next)) {
             if !self.bumper {
                 self.collisions += 1;
@@ -191,11 +207,9 @@ impl DiffDrive {
             let probe = integrate(&self.pose, self.contact_dir * BUMPER_TRAVEL_M, 0.0, 1.0);
             self.bumper = self.collision.as_ref().is_some_and(|hit| hit(&probe));
         }
-        let half = 0.5 * self.params.wheel_base_m * w_mean;
-        let (dl, dr) = ((v_mean - half) * dt, (v_mean + half) * dt);
-        let sigma = self.params.encoder_noise;
-        self.left_ticks += dl * self.params.ticks_per_m * (1.0 + sigma * self.rng.normal());
-        self.right_ticks += dr * self.params.ticks_per_m * (1.0 + sigma * self.rng.normal());
+        let sigma = self.params.error.noise;
+        self.left_ticks += u_l * dt * self.params.ticks_per_m * (1.0 + sigma * self.rng.normal());
+        self.right_ticks += u_r * dt * self.params.ticks_per_m * (1.0 + sigma * self.rng.normal());
     }
 }
 
@@ -206,7 +220,7 @@ mod tests {
 
     fn quiet() -> DiffDriveParams {
         DiffDriveParams {
-            encoder_noise: 0.0,
+            error: OdometryError::NONE,
             limits: DriveLimits { max_accel: 1e9, max_alpha: 1e9, ..Default::default() },
             ..Default::default()
         }
@@ -255,8 +269,41 @@ mod tests {
     }
 
     #[test]
+    fn unequal_wheels_curve_a_straight_run_by_the_closed_form_radius() {
+        let error = OdometryError { left: -0.01, right: 0.01, ..OdometryError::NONE };
+        let mut d = DiffDrive::new(DiffDriveParams { error, ..quiet() });
+        for _ in 0..1000 {
+            d.step(BodyVelocity::new(0.5, 0.0), 0.01);
+        }
+        // Curvature (right − left)/b: an arc of radius 16.5 m to the left, centred on (0, R).
+        let radius = 0.33 / 0.02;
+        let p = d.pose();
+        let arc = 0.5 * 10.0 - 0.5 * 0.5 * 0.01;
+        assert!((p.theta - arc / radius).abs() < 1e-9, "{p:?}");
+        assert!((p.x.hypot(p.y - radius) - radius).abs() < 1e-9, "{p:?}");
+        assert!(p.y > 0.7, "{p:?}");
+        // The encoders (nominal wheel travel) say the robot drove straight.
+        let (l, r) = d.ticks();
+        assert_eq!(l, r);
+        assert!((l - 49_975).abs() <= 1, "{l}");
+    }
+
+    #[test]
+    fn a_wide_wheel_base_and_slip_shorten_turns_the_encoders_do_not_see() {
+        let error = OdometryError { wheelbase: 0.1, slip: 0.1, ..OdometryError::NONE };
+        let mut d = DiffDrive::new(DiffDriveParams { error, ..quiet() });
+        for _ in 0..100 {
+            d.step(BodyVelocity::new(0.0, 1.0), 0.01);
+        }
+        // Nominal 0.995 rad; the wheels' arc spans a 10 % wider base and 10 % of it slips.
+        assert!((d.pose().theta - 0.995 / 1.1 * 0.9).abs() < 1e-12, "{:?}", d.pose());
+        let (l, r) = d.ticks();
+        assert!((l + 1642).abs() <= 1 && (r - 1641).abs() <= 1, "{l} {r}");
+    }
+
+    #[test]
     fn limits_clamp_and_ramp() {
-        let mut d = DiffDrive::new(DiffDriveParams { encoder_noise: 0.0, ..Default::default() });
+        let mut d = DiffDrive::new(DiffDriveParams { error: OdometryError::NONE, ..Default::default() });
         d.step(BodyVelocity::new(5.0, -10.0), 0.1);
         assert!((d.velocity().v - 0.1).abs() < 1e-12 && (d.velocity().omega + 0.4).abs() < 1e-12);
         for _ in 0..100 {
@@ -270,7 +317,11 @@ mod tests {
     #[test]
     fn encoder_noise_is_seeded_and_unbiased() {
         let run = |seed| {
-            let mut d = DiffDrive::new(DiffDriveParams { seed, encoder_noise: 0.05, ..quiet() });
+            let mut d = DiffDrive::new(DiffDriveParams {
+                seed,
+                error: OdometryError { noise: 0.05, ..OdometryError::NONE },
+                ..quiet()
+            });
             for _ in 0..1000 {
                 d.step(BodyVelocity::new(0.5, 0.0), 0.01);
             }

@@ -14,12 +14,14 @@
 //! | [`pty`] | raw-mode pseudo-terminals that stand in for serial ports |
 //! | [`faults`] | seeded link faults (dropped, corrupted, delayed bytes, disconnects) and the simulation RNG |
 //! | [`kinematics`] | differential-drive kinematics: limits, exact arcs, noisy encoders, collision hook |
+//! | [`odometry_error`] | how a base's wheels differ from its firmware's nominal ones: radius, wheel base, noise, slip; the `--odometry-error` spec |
 //! | [`sim_base`] | the simulated FNP/1 base and the pty server ([`sim_base::SimServer`]) for any simulated device |
 //! | [`sim_kobuki`] | the simulated Kobuki (TurtleBot 2) base |
 
 pub mod camera;
 pub mod faults;
 pub mod kinematics;
+pub mod odometry_error;
 pub mod pty;
 pub mod render;
 pub mod rendered_camera;
@@ -31,6 +33,7 @@ pub mod truth;
 pub mod world;
 
 pub use camera::CameraPose;
+pub use odometry_error::OdometryError;
 pub use render::{DepthMap, Effects, Renderer};
 pub use rendered_camera::{Pacing, RenderedCamera};
 pub use truth::{FrameTruth, GroundTruth, MotionField, TpoClass};

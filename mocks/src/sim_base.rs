@@ -101,6 +101,8 @@ pub struct SimBase {
     next_odom_s: f64,
     next_status_s: f64,
     last_host_seq: u8,
+    /// Time and ticks of the previous ODOM: the velocities are derived from the tick increments.
+    last_odom: Option<(f64, i64, i64)>,
     counters: SimBaseCounters,
 }
 
@@ -118,6 +120,7 @@ impl SimBase {
             next_odom_s: 0.0,
             next_status_s: 0.0,
             last_host_seq: 0,
+            last_odom: None,
             counters: SimBaseCounters::default(),
             cfg,
         }
@@ -169,7 +172,17 @@ impl SimBase {
     fn odom(&mut self, out: &mut Vec<u8>) {
         let t_us = (self.cfg.clock_start_us as u64).wrapping_add((self.t_s * 1e6).round() as u64) as u32;
         let (l, r) = self.drive.ticks();
-        let vel = self.drive.velocity();
+        // As firmware does: the velocities are the tick increments since the previous ODOM over
+        // its period, with the nominal ticks/m and wheel base (the true wheels may differ).
+        let vel = match self.last_odom {
+            Some((t0, l0, r0)) if self.t_s > t0 => {
+                let (dt, k) = (self.t_s - t0, self.cfg.drive.ticks_per_m);
+                let (dl, dr) = ((l - l0) as f64 / k, (r - r0) as f64 / k);
+                BodyVelocity::new(0.5 * (dl + dr) / dt, (dr - dl) / self.cfg.drive.wheel_base_m / dt)
+            }
+            _ => BodyVelocity::ZERO,
+        };
+        self.last_odom = Some((self.t_s, l, r));
         let packet = Packet::Odom {
             t_us,
             left_ticks: l as i32,
@@ -529,7 +542,10 @@ mod tests {
     }
 
     fn quiet() -> SimBaseConfig {
-        SimBaseConfig { drive: DiffDriveParams { encoder_noise: 0.0, ..Default::default() }, ..Default::default() }
+        SimBaseConfig {
+            drive: DiffDriveParams { error: crate::OdometryError::NONE, ..Default::default() },
+            ..Default::default()
+        }
     }
 
     #[test]
@@ -621,7 +637,8 @@ mod tests {
             _ => None,
         });
         let (ticks, v) = last_odom.unwrap();
-        assert_eq!(v, 200);
+        // Derived from 20 ms of ticks at 10000 ticks/m: one tick is 5 mm/s.
+        assert!((v - 200).abs() <= 5, "{v}");
         assert!((ticks - 3800).abs() <= 2, "{ticks}");
     }
 

@@ -8,6 +8,7 @@
 //! sensors can be set by a test; the bumper comes from the collision hook.
 
 use crate::kinematics::{DiffDrive, DiffDriveParams, DriveLimits, Pose};
+use crate::odometry_error::OdometryError;
 use crate::sim_base::SimDevice;
 use hal::BodyVelocity;
 use hal::kobuki::{self, CoreSensors, KobukiDecoder, KobukiStats};
@@ -32,7 +33,7 @@ impl Default for SimKobukiConfig {
                 wheel_base_m: kobuki::WHEEL_BASE_M,
                 ticks_per_m: kobuki::TICKS_PER_M,
                 limits: DriveLimits { max_v: 0.7, max_omega: std::f64::consts::PI, max_accel: 1.0, max_alpha: 6.0 },
-                encoder_noise: 0.005,
+                error: OdometryError { noise: 0.005, ..OdometryError::NONE },
                 seed: 1,
             },
             feedback_period_s: 0.02,
@@ -165,7 +166,7 @@ mod tests {
         let cfg = SimKobukiConfig {
             clock_start_ms: 65_500,
             encoder_start: 65_000,
-            drive: DiffDriveParams { encoder_noise: 0.0, ..SimKobukiConfig::default().drive },
+            drive: DiffDriveParams { error: OdometryError::NONE, ..SimKobukiConfig::default().drive },
             ..Default::default()
         };
         let mut k = SimKobuki::new(cfg);

@@ -11,7 +11,7 @@ use crate::sim::{self, OFFICE_MAP_TOML, SimSetup, SimSummary};
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use hal::Calibration;
-use mocks::World;
+use mocks::{OdometryError, World};
 use serde::Serialize;
 use std::io::Write;
 use std::path::PathBuf;
@@ -64,6 +64,34 @@ pub struct Args {
     /// No progress lines on stderr.
     #[arg(long, short)]
     pub quiet: bool,
+    /// How the simulated base's true wheels differ from its firmware's nominal ones:
+    /// `left=F,right=F,wheelbase=F,noise=F,slip=F` (fractions; any subset, the rest 0) or `none`.
+    /// Default: an uncalibrated base (docs/sim.md says why these values).
+    #[arg(long, value_name = "SPEC", default_value_t = OdometryError::UNCALIBRATED)]
+    pub odometry_error: OdometryError,
+    /// Put the true start pose off the mission's start place: DX,DY in metres (map frame) and
+    /// DYAW in degrees. The navigation still believes it starts on the place.
+    #[arg(long, value_name = "DX,DY,DYAW_DEG", value_parser = parse_start_error, allow_hyphen_values = true)]
+    pub start_error: Option<mocks::Pose>,
+}
+
+/// `DX,DY,DYAW_DEG` → a pose offset (m, m, rad).
+pub fn parse_start_error(s: &str) -> Result<mocks::Pose, String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [dx, dy, dyaw] = parts.as_slice() else {
+        return Err(format!("start error {s:?} must be DX,DY,DYAW_DEG (metres, metres, degrees), e.g. 0.2,-0.1,5"));
+    };
+    let num = |name: &str, v: &str| -> Result<f64, String> {
+        v.parse::<f64>()
+            .ok()
+            .filter(|x| x.is_finite())
+            .ok_or_else(|| format!("start error {name} {v:?} is not a number (DX,DY,DYAW_DEG, e.g. 0.2,-0.1,5)"))
+    };
+    let (dx, dy, dyaw) = (num("DX", dx)?, num("DY", dy)?, num("DYAW_DEG", dyaw)?);
+    if dx.hypot(dy) > 5.0 || dyaw.abs() > 180.0 {
+        return Err(format!("start error {s:?} is beyond 5 m or 180°; put the robot near its start place"));
+    }
+    Ok(mocks::Pose::new(dx, dy, dyaw.to_radians()))
 }
 
 fn parse_range(s: &str) -> Result<(u64, u64), String> {
@@ -227,8 +255,12 @@ impl SeedJob<'_> {
         setup.seed = seed.unwrap_or(0);
         setup.max_time_s = args.max_time;
         setup.realtime = args.realtime;
+        setup.odometry_error = args.odometry_error;
+        if let Some(e) = args.start_error {
+            setup.start_error = e;
+        }
         if !args.quiet {
-            let start = setup.start_pose()?;
+            let start = setup.true_start_pose()?;
             eprintln!(
                 "{tag}flownav sim: mission {} on world {:?} (seed {}), {}x{} at {} fps, start ({:.2}, {:.2}, {:.0}°)",
                 setup.mission,

@@ -5,6 +5,7 @@
 use super::Common;
 use anyhow::Context;
 use clap::Args as ClapArgs;
+use mocks::OdometryError;
 use mocks::faults::FaultConfig;
 use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimDevice, SimServer};
 use mocks::sim_kobuki::{SimKobuki, SimKobukiConfig};
@@ -33,6 +34,10 @@ pub struct Args {
     /// Seed of the encoder noise.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// How the simulated wheels differ from the nominal ones the firmware reports with:
+    /// `left=F,right=F,wheelbase=F,noise=F,slip=F` (any subset) or `none` (docs/sim.md).
+    #[arg(long, value_name = "SPEC", default_value_t = OdometryError::UNCALIBRATED)]
+    pub odometry_error: OdometryError,
 }
 
 pub fn run(args: Args, _common: &Common) -> anyhow::Result<()> {
@@ -50,6 +55,7 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     if args.kobuki {
         let mut cfg = SimKobukiConfig::default();
         cfg.drive.seed = args.seed;
+        cfg.drive.error = args.odometry_error;
         let server = SimServer::start(SimKobuki::new(cfg), opts).context("opening a pseudo-terminal")?;
         announce(&server, &args)?;
         wait_for_signal().await?;
@@ -58,6 +64,7 @@ async fn serve(args: Args) -> anyhow::Result<()> {
     } else {
         let mut cfg = SimBaseConfig { watchdog_ms: args.watchdog_ms, ..Default::default() };
         cfg.drive.seed = args.seed;
+        cfg.drive.error = args.odometry_error;
         let server = SimServer::start(SimBase::new(cfg), opts).context("opening a pseudo-terminal")?;
         announce(&server, &args)?;
         wait_for_signal().await?;

@@ -57,7 +57,7 @@ use hal::fnp_driver::{FnpBase, FnpConfig, SerialBaseError};
 use hal::{BaseEvent, BodyVelocity, Calibration, Camera, MotorBase};
 use mocks::kinematics::{CollisionFn, Pose as KPose};
 use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimDevice, SimServer};
-use mocks::{Effects, GroundTruth, Pacing, Pose, RenderedCamera, Renderer, TpoClass, World};
+use mocks::{Effects, GroundTruth, OdometryError, Pacing, Pose, RenderedCamera, Renderer, TpoClass, World};
 use serde::Serialize;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -113,6 +113,12 @@ pub struct SimSetup {
     pub goal_tolerance_m: f64,
     /// How long (wall time) to wait for the driver/firmware in one tick before giving up.
     pub link_timeout: Duration,
+    /// How the simulated base's wheels differ from its firmware's nominal ones
+    /// (`--odometry-error`); [`OdometryError::UNCALIBRATED`] by default.
+    pub odometry_error: OdometryError,
+    /// The true start pose's offset from the mission's start place (`--start-error`): x and y in
+    /// the map frame, m, and yaw, rad. PAFSIS still believes it starts on the place.
+    pub start_error: Pose,
 }
 
 impl SimSetup {
@@ -132,7 +138,16 @@ impl SimSetup {
             robot_radius_m: ROBOT_RADIUS_M,
             goal_tolerance_m: GOAL_TOLERANCE_M,
             link_timeout: Duration::from_secs(30),
+            odometry_error: OdometryError::UNCALIBRATED,
+            start_error: Pose::new(0.0, 0.0, 0.0),
         }
+    }
+
+    /// Where the robot truly starts: [`Self::start_pose`] moved by [`Self::start_error`].
+    pub fn true_start_pose(&self) -> Result<Pose, SimError> {
+        let p = self.start_pose()?;
+        let e = self.start_error;
+        Ok(Pose::new(p.x + e.x, p.y + e.y, hal::motion::wrap_angle(p.yaw + e.yaw)))
     }
 
     /// Where the robot starts: the mission's first place (world `[places]`, else the map's
@@ -361,8 +376,11 @@ pub async fn run_with_camera<C: Camera>(
     if !(setup.max_time_s.is_finite() && setup.max_time_s > 0.0) {
         return Err(SimError::Option { name: "max-time", problem: "must be a positive number of seconds".into() });
     }
+    if let Err(e) = setup.odometry_error.validate() {
+        return Err(SimError::Option { name: "odometry-error", problem: e.to_string() });
+    }
     let wall_start = Instant::now();
-    let start = setup.start_pose()?;
+    let start = setup.true_start_pose()?;
     let goal_xy = setup.place_position(&setup.mission.to)?;
     let pipeline = Pipeline::new(&setup.config, setup.calib.clone(), Some((setup.map.clone(), setup.mission.clone())))?;
     let mut control = ControlLoop::new(pipeline, &RuntimeOptions::from_config(&setup.config), log.cloned(), 0)?;
@@ -386,6 +404,7 @@ pub async fn run_with_camera<C: Camera>(
     let collision: CollisionFn = Arc::new(move |p: &KPose| hit_world.clearance(p.x, p.y).distance_m < radius);
     let mut base_cfg = SimBaseConfig::default();
     base_cfg.drive.seed = setup.seed.wrapping_add(1);
+    base_cfg.drive.error = setup.odometry_error;
     let server =
         SimServer::start(SimBase::new(base_cfg), ServeOptions { clock: SimClock::Manual, ..Default::default() })
             .map_err(SimError::Pty)?;
