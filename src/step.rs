@@ -27,10 +27,11 @@ use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
 use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::{Mofis, MofisError, MofisInput, MofisOutput, MofisStep, Route};
+use crate::offis::features::TpoModel;
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
 use crate::offis::{Offis, OffisError};
-use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap};
+use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap, WallSighting};
 pub use crate::pairing::PairingParams;
 use crate::perception::{Obstacle, Perception};
 use crate::rotation::TurnCompensation;
@@ -119,10 +120,13 @@ enum Navigator {
 }
 
 impl Navigator {
-    /// The goal for this frame.
-    fn goal(&mut self, perception: &Perception, odometry: BodyVelocity, frame_dt: f64) -> Goal {
+    /// The goal for this frame; `walls` are the straight walls OFFIS fitted in it.
+    fn goal(&mut self, perception: &Perception, walls: &[WallSighting], odometry: BodyVelocity, frame_dt: f64) -> Goal {
         match self {
-            Navigator::Mission(pafsis) => pafsis.step(perception, odometry, frame_dt),
+            Navigator::Mission(pafsis) => {
+                pafsis.observe_walls(walls);
+                pafsis.step(perception, odometry, frame_dt)
+            }
             Navigator::Cruise(v) => Goal { velocity: *v, angle_rad: 0.0, status: GoalStatus::Active },
         }
     }
@@ -299,7 +303,8 @@ impl Pipeline {
                 last_omega: Some(odometry.omega),
             };
         }
-        let goal = self.navigator.goal(&perception, odometry, frame_dt);
+        let walls = wall_sightings(&self.offis.attributes().model, [calib.mount.x_m, calib.mount.y_m]);
+        let goal = self.navigator.goal(&perception, &walls, odometry, frame_dt);
         // the solid surface points, filtered as MOFIS's obstacle memory takes them in
         let (m, mp) = (&calib.mount, self.mofis.memory().params());
         let (min_radial, max_tangential) = (mp.min_radial_px, mp.max_tangential);
@@ -351,6 +356,19 @@ impl Pipeline {
             }
         }
     }
+}
+
+/// OFFIS's fitted planes as walls in the robot's frame: the fit is made from the camera, which
+/// sits at the mount's offset from the robot's reference point.
+fn wall_sightings(model: &TpoModel, mount_m: [f64; 2]) -> Vec<WallSighting> {
+    model
+        .planes()
+        .map(|l| WallSighting {
+            point_m: [l.centre[0] + mount_m[0], l.centre[1] + mount_m[1]],
+            dir: l.dir,
+            length_m: l.extent[1] - l.extent[0],
+        })
+        .collect()
 }
 
 #[cfg(test)]

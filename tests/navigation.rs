@@ -1,7 +1,7 @@
 //! Navigation: the shipped office map, PAFSIS following a plan from scripted landmarks and
 //! odometry, and MOFIS behaviour.
 
-use flownav::pafsis::{GoalStatus, LegKind, Mission, Pafsis, PafsisEvent, PafsisParams, TopoMap};
+use flownav::pafsis::{GoalStatus, LegKind, Mission, Pafsis, PafsisEvent, PafsisParams, TopoMap, WallSighting};
 use flownav::perception::{Perception, Tpo, TpoShape};
 use hal::BodyVelocity;
 
@@ -20,6 +20,12 @@ struct Walk {
     odo_scale: f64,
     /// Whether OFFIS reports landmarks at all.
     landmarks: bool,
+    /// Odometry reports this much turn rate on top of the true one (unequal wheels), rad/s.
+    omega_bias: f64,
+    /// Whether OFFIS fits the corridor's side walls (y = ±1 m) when they are in view.
+    walls: bool,
+    /// Largest distance from the corridor's centre line while following it, m.
+    max_off_centre_m: f64,
     path_m: f64,
 }
 
@@ -29,7 +35,39 @@ const END_WALL_X: f64 = 30.0;
 
 impl Walk {
     fn new(x: f64, y: f64, heading_deg: f64) -> Self {
-        Self { x, y, heading: heading_deg.to_radians(), odo_scale: 1.0, landmarks: true, path_m: 0.0 }
+        Self {
+            x,
+            y,
+            heading: heading_deg.to_radians(),
+            odo_scale: 1.0,
+            landmarks: true,
+            omega_bias: 0.0,
+            walls: false,
+            max_off_centre_m: 0.0,
+            path_m: 0.0,
+        }
+    }
+
+    /// The corridor's side walls from 1 m to 3 m ahead, in the robot's frame, while the robot
+    /// is in the corridor and faces along it.
+    fn side_walls(&self) -> Vec<WallSighting> {
+        if !self.walls || self.y.abs() >= 1.0 || self.heading.sin().abs() > 0.5 {
+            return Vec::new();
+        }
+        let (s, c) = self.heading.sin_cos();
+        let to_robot = |x: f64, y: f64| {
+            let (dx, dy) = (x - self.x, y - self.y);
+            [c * dx + s * dy, -s * dx + c * dy]
+        };
+        let ahead = self.heading.cos().signum();
+        [1.0, -1.0]
+            .into_iter()
+            .map(|wall_y| {
+                let (a, b) = (to_robot(self.x + ahead, wall_y), to_robot(self.x + 3.0 * ahead, wall_y));
+                let n = (b[0] - a[0]).hypot(b[1] - a[1]);
+                WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: n }
+            })
+            .collect()
     }
 
     fn perceive(&self) -> Perception {
@@ -55,6 +93,7 @@ impl Walk {
         let mut odo = BodyVelocity::ZERO;
         let mut events = Vec::new();
         for _ in 0..(max_s / dt) as usize {
+            nav.observe_walls(&self.side_walls());
             let goal = nav.step(&self.perceive(), odo, dt);
             events.extend(nav.take_events());
             if goal.status != GoalStatus::Active {
@@ -65,7 +104,10 @@ impl Walk {
             self.x += goal.velocity * dt * self.heading.cos();
             self.y += goal.velocity * dt * self.heading.sin();
             self.path_m += goal.velocity * dt;
-            odo = BodyVelocity::new(goal.velocity * self.odo_scale, omega);
+            if self.y.abs() < 1.0 && self.heading.sin().abs() < 0.5 {
+                self.max_off_centre_m = self.max_off_centre_m.max(self.y.abs());
+            }
+            odo = BodyVelocity::new(goal.velocity * self.odo_scale, omega + self.omega_bias);
         }
         (nav.status(), events)
     }
@@ -125,6 +167,31 @@ fn door_sightings_correct_bad_odometry() {
     assert!(without.x < 8.5, "odometry alone overshoots D2 by 0.6 m (x = {:.2})", without.x);
     let missed = events.iter().filter(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })).count();
     assert_eq!(missed, 2, "every door reported missing");
+}
+
+#[test]
+fn side_walls_correct_a_drifting_heading() {
+    let map = office();
+    // Odometry reports 0.01 rad/s of turn that is not there (unequal wheels): believing it
+    // drifts left, the robot steers right, and down the 12 m corridor its heading goes 0.3 rad
+    // wrong.
+    let drifting = || Walk { omega_bias: 0.01, ..Walk::new(21.0, -3.0, 90.0) };
+    let mut with = Walk { walls: true, ..drifting() };
+    let (status, _) = with.run(&mut mission(&map, "R9:D2"), 120.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!(with.max_off_centre_m < 0.25, "with side walls {:.2} m off the centre line", with.max_off_centre_m);
+    assert!((with.x - 9.0).abs() < 0.3, "with side walls stopped at x = {:.2}", with.x);
+    assert!(nav_fixes(&map, true) > 100, "side walls corrected the heading");
+
+    let mut without = drifting();
+    without.run(&mut mission(&map, "R9:D2"), 120.0);
+    assert!(without.max_off_centre_m > 0.9, "dead reckoning alone ran {:.2} m off", without.max_off_centre_m);
+}
+
+fn nav_fixes(map: &TopoMap, walls: bool) -> u64 {
+    let mut nav = mission(map, "R9:D2");
+    Walk { omega_bias: 0.01, walls, ..Walk::new(21.0, -3.0, 90.0) }.run(&mut nav, 120.0);
+    nav.wall_fixes().frames
 }
 
 #[test]

@@ -179,6 +179,11 @@ fn summary_json_starts_with_the_contract_fields() {
         doors_matched: 0,
         landmarks_missed: 0,
         replans: 0,
+        wall_fixes: 12,
+        mean_heading_error_deg: 1.5,
+        final_heading_error_deg: 0.5,
+        odometry_error: "none".into(),
+        start_error: [0.0, 0.0, 0.0],
         wall_s: 20.75,
         realtime_factor: 2.0,
         size: [640, 360],
@@ -239,6 +244,35 @@ fn start_pose_and_world_geometry_come_from_the_files() {
             }
         }
     }
+}
+
+#[test]
+fn the_start_error_moves_the_true_start_and_not_the_plan() {
+    let mut setup = hall_setup();
+    setup.start_error = mocks::Pose::new(0.2, -0.1, 5f64.to_radians());
+    let (planned, truth) = (setup.start_pose().unwrap(), setup.true_start_pose().unwrap());
+    assert_eq!((planned.x, planned.y, planned.yaw), (1.0, 0.0, 0.0));
+    assert!((truth.x - 1.2).abs() < 1e-12 && (truth.y + 0.1).abs() < 1e-12, "{truth:?}");
+    assert!((truth.yaw - 5f64.to_radians()).abs() < 1e-12);
+}
+
+/// Bad `--odometry-error` and `--start-error` values are refused before anything runs, naming
+/// the key or the part that is wrong.
+#[test]
+fn bad_odometry_and_start_errors_name_what_is_wrong() {
+    let run = |flag: &str, value: &str| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_flownav"))
+            .args(["sim", "--no-log", "--quiet", flag, value])
+            .output()
+            .expect("flownav runs");
+        assert_eq!(out.status.code(), Some(2), "a usage error");
+        String::from_utf8(out.stderr).unwrap()
+    };
+    assert!(run("--odometry-error", "left=0.01,whelbase=0.02").contains("unknown key \"whelbase\""));
+    assert!(run("--odometry-error", "slip=lots").contains("slip=\"lots\" is not a number"));
+    assert!(run("--odometry-error", "noise=-1").contains("noise=-1 is outside"));
+    assert!(run("--start-error", "0.1,0.2").contains("DX,DY,DYAW_DEG"));
+    assert!(run("--start-error", "0.1,x,3").contains("DY \"x\" is not a number"));
 }
 
 /// `--seeds A..B --jobs N` runs the missions side by side and prints what one at a time prints:

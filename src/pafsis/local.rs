@@ -14,6 +14,7 @@
 use super::PafsisParams;
 use super::global::{Mission, Plan, PlanError, plan};
 use super::map::{Action, Side, TopoMap, Until, wrap_angle};
+use super::walls::{self, WallGates, WallSighting};
 use crate::perception::{Perception, TpoShape};
 use hal::BodyVelocity;
 use serde::Serialize;
@@ -362,6 +363,20 @@ pub struct Pafsis {
     replans: u32,
     status: GoalStatus,
     events: Vec<PafsisEvent>,
+    /// Side walls of the current frame ([`Pafsis::observe_walls`]), taken by the next step.
+    walls: Vec<WallSighting>,
+    wall_fixes: WallFixes,
+}
+
+/// How much the side walls have moved the estimate so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct WallFixes {
+    /// Frames whose side walls corrected the heading.
+    pub frames: u64,
+    /// Sum of the heading corrections' sizes, rad.
+    pub heading_rad: f64,
+    /// Sum of the lateral corrections' sizes, m.
+    pub lateral_m: f64,
 }
 
 impl Pafsis {
@@ -398,6 +413,8 @@ impl Pafsis {
             replans: 0,
             status: GoalStatus::Active,
             events: Vec::new(),
+            walls: Vec::new(),
+            wall_fixes: WallFixes::default(),
         };
         me.start_leg(0);
         Ok(me)
@@ -476,6 +493,52 @@ impl Pafsis {
         Some(ahead)
     }
 
+    /// The straight walls OFFIS fitted in the frame the next [`Pafsis::step`] takes; on a
+    /// corridor leg, side walls correct the heading and the offset from the centre line
+    /// ([`super::walls`]).
+    pub fn observe_walls(&mut self, walls: &[WallSighting]) {
+        self.walls.clear();
+        self.walls.extend_from_slice(walls);
+    }
+
+    /// How much side walls have corrected the estimate so far.
+    pub fn wall_fixes(&self) -> WallFixes {
+        self.wall_fixes
+    }
+
+    /// Applies the side walls of the frame to the heading and the dead-reckoned offset.
+    fn correct_from_walls(&mut self) {
+        let walls = std::mem::take(&mut self.walls);
+        let Some(leg) = self.legs.get(self.leg) else { return };
+        if !matches!(leg.kind, LegKind::Corridor { .. }) || walls.is_empty() {
+            return;
+        }
+        let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
+        let lane = match (leg.lane_width_m, leg.line_point_m, self.position_m) {
+            (Some(width), Some(point), Some(position)) => {
+                Some((left_of_line(position, point, leg.heading_rad), 0.5 * width))
+            }
+            _ => None,
+        };
+        let leg_heading = leg.heading_rad;
+        let innovation = walls::innovation(&walls, heading_rel, lane, &WallGates::default());
+        if let Some(d) = innovation.heading_rad {
+            let fix = self.params.wall_heading_gain * d;
+            self.heading_rad = wrap_angle(self.heading_rad + fix);
+            self.wall_fixes.frames += 1;
+            self.wall_fixes.heading_rad += fix.abs();
+        }
+        if let (Some(d), Some([x, y])) = (innovation.lateral_m, &mut self.position_m) {
+            let fix = self.params.wall_lateral_gain * d;
+            // Along the leg's left normal.
+            *x -= fix * leg_heading.sin();
+            *y += fix * leg_heading.cos();
+            self.wall_fixes.lateral_m += fix.abs();
+        }
+        self.walls = walls;
+        self.walls.clear();
+    }
+
     /// Integrates odometry only: for steps without perception (the robot is being stopped),
     /// so that progress stays right.
     pub fn advance_odometry(&mut self, odo: BodyVelocity, dt: f64) {
@@ -519,6 +582,9 @@ impl Pafsis {
         }
         if self.status != GoalStatus::Active {
             return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
+        }
+        if hint.is_none() {
+            self.correct_from_walls();
         }
         self.observe(perception);
         if let (true, Some(d)) = (perception.obstacle.present, perception.obstacle.distance_m)

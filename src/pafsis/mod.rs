@@ -6,10 +6,12 @@
 pub mod global;
 pub mod local;
 pub mod map;
+pub mod walls;
 
 pub use global::{Mission, Plan, PlanError, plan};
-pub use local::{Doorway, Goal, GoalStatus, Lane, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress};
+pub use local::{Doorway, Goal, GoalStatus, Lane, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress, WallFixes};
 pub use map::{Action, MapError, PlaceKind, Side, TopoMap, Until};
+pub use walls::WallSighting;
 
 use crate::config_error::ConfigError;
 use serde::{Deserialize, Serialize};
@@ -59,6 +61,12 @@ pub struct PafsisParams {
     /// until the robot has driven d plus this far, m: it passes the obstacle on the side it
     /// swerved to and returns to the line behind it (0: never pause).
     pub cross_track_hold_m: f64,
+    /// On corridor legs, each frame's side walls ([`walls`]) move the heading estimate this
+    /// fraction of the way to what they say (0: dead-reckoned heading only).
+    pub wall_heading_gain: f64,
+    /// ... and the dead-reckoned offset from the centre line, where the map gives the
+    /// corridor's width (0: never).
+    pub wall_lateral_gain: f64,
 }
 
 impl Default for PafsisParams {
@@ -79,6 +87,8 @@ impl Default for PafsisParams {
             lookahead_m: 1.5,
             cross_track_odometry: true,
             cross_track_hold_m: 1.0,
+            wall_heading_gain: 0.05,
+            wall_lateral_gain: 0.03,
         }
     }
 }
@@ -106,6 +116,12 @@ impl PafsisParams {
         }
         if !(self.cross_track_hold_m.is_finite() && self.cross_track_hold_m >= 0.0) {
             return bad("cross_track_hold_m", "must be a finite distance >= 0 m");
+        }
+        if !(0.0..=1.0).contains(&self.wall_heading_gain) {
+            return bad("wall_heading_gain", "must be in [0, 1]");
+        }
+        if !(0.0..=1.0).contains(&self.wall_lateral_gain) {
+            return bad("wall_lateral_gain", "must be in [0, 1]");
         }
         if !(0.0..=1.0).contains(&self.min_speed_fraction) {
             return bad("min_speed_fraction", "must be in [0, 1]");

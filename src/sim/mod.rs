@@ -221,6 +221,16 @@ pub struct SimSummary {
     pub doors_matched: u64,
     pub landmarks_missed: u64,
     pub replans: u64,
+    /// Frames whose side walls corrected PAFSIS's heading ([`crate::pafsis::walls`]).
+    pub wall_fixes: u64,
+    /// Mean over the stepped frames of |PAFSIS's heading estimate − the true heading|, degrees,
+    /// and its value at the end: how far dead reckoning and the landmarks kept the heading.
+    pub mean_heading_error_deg: f64,
+    pub final_heading_error_deg: f64,
+    /// The odometry error of the simulated base (`--odometry-error`) and the start error
+    /// (`--start-error`: dx, dy in m, dyaw in degrees).
+    pub odometry_error: String,
+    pub start_error: [f64; 3],
     /// Wall-clock time of the run, s, and simulated seconds per wall second.
     pub wall_s: f64,
     pub realtime_factor: f64,
@@ -443,6 +453,7 @@ pub async fn run_with_camera<C: Camera>(
     let mut status = GoalStatus::Active;
     let mut last_output: Option<StepOutput> = None;
     let mut scored = quality::Quality::default();
+    let (mut heading_err_sum, mut heading_err_n, mut heading_err_last) = (0.0f64, 0u64, 0.0f64);
     let mut t_s = 0.0;
 
     for k in 0..=max_ticks {
@@ -531,6 +542,11 @@ pub async fn run_with_camera<C: Camera>(
                     scored.observe(&setup.world, &pose, pipeline.surface_points(), &pipeline.memory().occupied());
                     let said_none = out.perception.tpo.shape == TpoShape::None;
                     scored.observe_tpo(truth.tpo(pose).shape != TpoClass::None, said_none);
+                    if let Some(nav) = pipeline.pafsis() {
+                        heading_err_last = hal::motion::wrap_angle(nav.progress().heading_rad - pose.yaw).abs();
+                        heading_err_sum += heading_err_last;
+                        heading_err_n += 1;
+                    }
                     last_output = Some(out);
                 }
                 setpoint
@@ -673,6 +689,15 @@ pub async fn run_with_camera<C: Camera>(
         doors_matched,
         landmarks_missed,
         replans,
+        wall_fixes: pipeline.pafsis().map_or(0, |p| p.wall_fixes().frames),
+        mean_heading_error_deg: round3((heading_err_sum / heading_err_n.max(1) as f64).to_degrees()),
+        final_heading_error_deg: round3(heading_err_last.to_degrees()),
+        odometry_error: setup.odometry_error.to_string(),
+        start_error: [
+            round3(setup.start_error.x),
+            round3(setup.start_error.y),
+            round3(setup.start_error.yaw.to_degrees()),
+        ],
         wall_s: round3(wall_s),
         realtime_factor: round3(t_s / wall_s.max(1e-9)),
         size: [setup.calib.camera.width, setup.calib.camera.height],

@@ -1,0 +1,163 @@
+//! A corridor's side walls as landmarks (paper §2.2: the robot localises from what it
+//! recognises). Dead reckoning's heading drifts with every turn a base makes a little short or
+//! long and with wheels that are not quite equal (`flownav sim --odometry-error`), and a heading
+//! error of a few degrees puts the robot against a wall within one corridor. A side wall that
+//! OFFIS fits as a straight line runs along the corridor, so its direction in the robot's frame
+//! says how the robot is turned against the corridor, and its distance, with the map's width,
+//! says how far the robot is off the centre line.
+//!
+//! Pure: sightings in, innovations out; [`super::Pafsis`] applies them with a small gain per
+//! frame (a few seconds of agreeing frames move the estimate; one wrong frame hardly does).
+
+use serde::Serialize;
+
+/// A straight wall OFFIS fitted in the last frame pair, in the robot's frame (x forward, y left,
+/// origin the robot's reference point), m.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct WallSighting {
+    /// A point on the wall.
+    pub point_m: [f64; 2],
+    /// The wall's unit direction.
+    pub dir: [f64; 2],
+    /// How much of the wall the fit spans, m.
+    pub length_m: f64,
+}
+
+impl WallSighting {
+    /// The wall's direction relative to the robot's heading, folded into (−π/2, π/2], rad.
+    pub fn angle_rad(&self) -> f64 {
+        let a = self.dir[1].atan2(self.dir[0]);
+        if a > std::f64::consts::FRAC_PI_2 {
+            a - std::f64::consts::PI
+        } else if a <= -std::f64::consts::FRAC_PI_2 {
+            a + std::f64::consts::PI
+        } else {
+            a
+        }
+    }
+
+    /// Signed distance from the robot to the wall's line, m: + when the wall is on the left.
+    pub fn offset_m(&self) -> f64 {
+        let [ux, uy] = self.dir;
+        let [cx, cy] = self.point_m;
+        // The line's foot point nearest the robot.
+        let t = cx * ux + cy * uy;
+        let (px, py) = (cx - t * ux, cy - t * uy);
+        px.hypot(py).copysign(py)
+    }
+}
+
+/// Which walls count, and how far a sighting may disagree with the estimate.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WallGates {
+    /// Shortest wall that counts, m: a box's face or a door jamb is shorter.
+    pub min_length_m: f64,
+    /// Largest heading disagreement a sighting may correct, rad.
+    pub heading_gate_rad: f64,
+    /// Largest lateral disagreement a sighting may correct, m.
+    pub lateral_gate_m: f64,
+}
+
+impl Default for WallGates {
+    fn default() -> Self {
+        Self { min_length_m: 1.2, heading_gate_rad: 0.2, lateral_gate_m: 0.35 }
+    }
+}
+
+/// What the side walls of one frame say against the estimate.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct WallInnovation {
+    /// Measured minus estimated heading relative to the corridor, rad (mean over the walls).
+    pub heading_rad: Option<f64>,
+    /// Measured minus estimated offset left of the centre line, m.
+    pub lateral_m: Option<f64>,
+}
+
+/// Compares the side walls among `walls` with the estimate: `heading_rel_rad` is the estimated
+/// heading minus the corridor's direction, `left_m` the estimated offset left of the centre
+/// line and `half_width_m` half the corridor's width (both only where the map gives them).
+pub fn innovation(
+    walls: &[WallSighting],
+    heading_rel_rad: f64,
+    lane: Option<(f64, f64)>,
+    gates: &WallGates,
+) -> WallInnovation {
+    let (mut heading_sum, mut heading_n) = (0.0, 0u32);
+    let (mut lateral_sum, mut lateral_n) = (0.0, 0u32);
+    for w in walls.iter().filter(|w| w.length_m >= gates.min_length_m) {
+        // A wall along the corridor appears turned by minus the robot's heading against it.
+        let measured = -w.angle_rad();
+        let d_heading = measured - heading_rel_rad;
+        if d_heading.abs() > gates.heading_gate_rad {
+            continue;
+        }
+        heading_sum += d_heading;
+        heading_n += 1;
+        if let Some((left_m, half_width_m)) = lane {
+            // Perpendicular to the wall, so the robot's heading does not enter.
+            let off = w.offset_m();
+            let measured_left = off.signum() * (half_width_m - off.abs());
+            let d_left = measured_left - left_m;
+            if d_left.abs() <= gates.lateral_gate_m {
+                lateral_sum += d_left;
+                lateral_n += 1;
+            }
+        }
+    }
+    WallInnovation {
+        heading_rad: (heading_n > 0).then(|| heading_sum / f64::from(heading_n)),
+        lateral_m: (lateral_n > 0).then(|| lateral_sum / f64::from(lateral_n)),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A side wall of a corridor `half` m half-wide, seen by a robot `left` m left of the centre
+    /// line and turned `psi` against the corridor's direction.
+    fn side_wall(psi: f64, left: f64, half: f64, on_left: bool) -> WallSighting {
+        // Corridor frame: the wall is the line y = ±half; the robot at (0, left), heading psi.
+        let y_wall = if on_left { half } else { -half };
+        let (s, c) = psi.sin_cos();
+        let to_robot = |x: f64, y: f64| {
+            let (dx, dy) = (x, y - left);
+            [c * dx + s * dy, -s * dx + c * dy]
+        };
+        let a = to_robot(1.0, y_wall);
+        let b = to_robot(3.0, y_wall);
+        let n = (b[0] - a[0]).hypot(b[1] - a[1]);
+        WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: 2.0 }
+    }
+
+    #[test]
+    fn a_side_wall_gives_the_heading_and_the_offset() {
+        let gates = WallGates::default();
+        for on_left in [true, false] {
+            let w = side_wall(0.08, 0.3, 1.0, on_left);
+            assert!((w.angle_rad() + 0.08).abs() < 1e-12, "{}", w.angle_rad());
+            let expect_off = if on_left { 0.7 } else { -1.3 };
+            assert!((w.offset_m() - expect_off).abs() < 1e-12, "{} {}", w.offset_m(), expect_off);
+            // The estimate believes: heading 0.02 off, 0.1 m left of the centre line.
+            let i = innovation(&[w], 0.02, Some((0.1, 1.0)), &WallGates { lateral_gate_m: 1.0, ..gates });
+            assert!((i.heading_rad.unwrap() - 0.06).abs() < 1e-12, "{i:?}");
+            assert!((i.lateral_m.unwrap() - 0.2).abs() < 1e-12, "{i:?}");
+        }
+    }
+
+    #[test]
+    fn short_walls_and_disagreeing_ones_do_not_count() {
+        let gates = WallGates::default();
+        let mut short = side_wall(0.05, 0.0, 1.0, true);
+        short.length_m = 0.6;
+        assert_eq!(innovation(&[short], 0.0, Some((0.0, 1.0)), &gates), WallInnovation::default());
+        // A frontal wall (an end wall, a box face across the corridor) is no side wall.
+        let frontal = WallSighting { point_m: [2.0, 0.0], dir: [0.0, 1.0], length_m: 2.0 };
+        assert_eq!(innovation(&[frontal], 0.0, None, &gates).heading_rad, None);
+        // A wall 0.5 m nearer than the corridor's width puts it (a row of boxes): heading yes, offset no.
+        let near = side_wall(0.0, 0.5, 1.0, true);
+        let i = innovation(&[near], 0.0, Some((0.0, 1.0)), &gates);
+        assert_eq!(i.heading_rad, Some(0.0));
+        assert_eq!(i.lateral_m, None);
+    }
+}
