@@ -277,9 +277,10 @@ impl SeedJob<'_> {
                 crate::pafsis::Pafsis::new(setup.map.clone(), setup.mission.clone(), setup.config.pafsis.clone())?;
             let legs: Vec<String> = nav.legs().iter().map(|l| l.to_string()).collect();
             eprintln!(
-                "{tag}plan: {} ({:.1} m); legs: {}",
+                "{tag}plan: {} ({:.1} m, map tolerance {}); legs: {}",
                 nav.plan().waypoints.join(" → "),
                 nav.plan().length_m,
+                nav.map().tolerance,
                 legs.join("; ")
             );
             let world = &setup.world;

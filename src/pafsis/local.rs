@@ -13,7 +13,7 @@
 
 use super::PafsisParams;
 use super::global::{Mission, Plan, PlanError, plan};
-use super::map::{Action, Side, TopoMap, Until, wrap_angle};
+use super::map::{Action, MapTolerance, Side, TopoMap, Until, wrap_angle};
 use super::walls::{self, WallGates, WallSighting};
 use crate::perception::{Perception, TpoShape};
 use hal::BodyVelocity;
@@ -709,10 +709,10 @@ impl Pafsis {
         let Some(Leg { kind: LegKind::Corridor { doors, .. }, .. }) = self.legs.get(self.leg) else {
             return;
         };
-        let gate = self.params.landmark_gate_m;
         let seen_at = distance.map(|d| self.along_m + d);
         let mut i = self.next_door;
         while let Some(door) = doors.get(i) {
+            let gate = door_gate(&self.params, &self.map.tolerance, door.at_m);
             let window_ok = match (door.at_m, seen_at) {
                 (Some(at), Some(e)) if e < at - gate => None,
                 (Some(at), Some(e)) if e > at + gate => Some(false),
@@ -756,9 +756,8 @@ impl Pafsis {
             LegKind::Doorway { length_m, .. } => self.along_m >= *length_m,
             LegKind::Corridor { length_m, doors, end } => {
                 // Doors whose window the robot has left without a sighting: missed.
-                let gate = self.params.landmark_gate_m;
                 while let Some(d) = doors.get(self.next_door)
-                    && d.at_m.is_some_and(|at| self.along_m > at + gate)
+                    && d.at_m.is_some_and(|at| self.along_m > at + door_gate(&self.params, &self.map.tolerance, d.at_m))
                 {
                     let what = describe_door(d);
                     self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
@@ -917,6 +916,13 @@ impl Pafsis {
 /// and the line held while an obstacle was in sight, a robot 0.8 m beside the axis 1 m before
 /// the wall stood turning there (the opening's wall blocked every heading within reach).
 const DOOR_LOOKAHEAD_M: f64 = 0.6;
+
+/// How far from where the map puts it a door may be sighted and still match, m: the
+/// configured gate, or the map's tolerance where that is wider, which grows with the distance
+/// along the leg (a length off by a few percent).
+fn door_gate(params: &PafsisParams, tolerance: &MapTolerance, at_m: Option<f64>) -> f64 {
+    at_m.map_or(params.landmark_gate_m, |at| params.landmark_gate_m.max(tolerance.window_m(at)))
+}
 
 /// Signed distance of `position` left of the line through `point` with heading `heading_rad`, m.
 fn left_of_line(position: [f64; 2], point: [f64; 2], heading_rad: f64) -> f64 {

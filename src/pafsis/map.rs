@@ -243,11 +243,47 @@ impl Edge {
     }
 }
 
+/// How far the map's figures may be off the building (`[tolerance]` in a map file): a map drawn
+/// from plans or with a tape measure. The planner matches landmarks within it and says it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MapTolerance {
+    /// Lengths along a leg (`length_m`, the distances between places) are within this fraction
+    /// of the building's.
+    pub length_frac: f64,
+    /// Places (a door's place along its corridor) are within this distance of where the map
+    /// puts them, m.
+    pub position_m: f64,
+}
+
+impl Default for MapTolerance {
+    /// ±5 % on lengths, ±0.2 m on places: what a tape-measured corridor and door places marked
+    /// by eye give.
+    fn default() -> Self {
+        Self { length_frac: 0.05, position_m: 0.2 }
+    }
+}
+
+impl MapTolerance {
+    /// How far from its mapped place a landmark `at_m` along a leg may be found, m.
+    pub fn window_m(&self, at_m: f64) -> f64 {
+        self.position_m + self.length_frac * at_m.abs()
+    }
+}
+
+impl std::fmt::Display for MapTolerance {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "±{:.0} % on lengths, ±{:.2} m on places", self.length_frac * 100.0, self.position_m)
+    }
+}
+
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct MapFile {
     #[serde(default)]
     name: Option<String>,
+    #[serde(default)]
+    tolerance: MapTolerance,
     #[serde(default)]
     place: Vec<Place>,
     #[serde(default)]
@@ -262,6 +298,8 @@ pub struct TopoMap {
     pub name: String,
     pub places: Vec<Place>,
     pub edges: Vec<Edge>,
+    /// How far its figures may be off the building.
+    pub tolerance: MapTolerance,
     index: HashMap<String, usize>,
 }
 
@@ -295,6 +333,13 @@ impl TopoMap {
             if p.heading_deg.is_some_and(|h| !h.is_finite()) {
                 return Err(invalid(entry, "heading_deg must be finite".into()));
             }
+        }
+        let tol = file.tolerance;
+        if !(tol.length_frac.is_finite() && (0.0..=0.5).contains(&tol.length_frac)) {
+            return Err(invalid("[tolerance]".into(), "length_frac must be a fraction in 0..=0.5, e.g. 0.05".into()));
+        }
+        if !(tol.position_m.is_finite() && (0.0..=2.0).contains(&tol.position_m)) {
+            return Err(invalid("[tolerance]".into(), "position_m must be a distance in 0..=2 m, e.g. 0.2".into()));
         }
         if file.place.is_empty() {
             return Err(invalid("[[place]]".into(), "the map has no places".into()));
@@ -336,6 +381,7 @@ impl TopoMap {
             source,
             places: file.place,
             edges: file.edge,
+            tolerance: file.tolerance,
             index,
         })
     }
@@ -468,6 +514,25 @@ mod tests {
 
     fn err(text: &str) -> String {
         TopoMap::parse(text, "bad.toml").unwrap_err().to_string()
+    }
+
+    #[test]
+    fn the_tolerance_defaults_parses_and_is_checked() {
+        let m = TopoMap::parse(TINY, "tiny.toml").unwrap();
+        assert_eq!(m.tolerance, MapTolerance { length_frac: 0.05, position_m: 0.2 });
+        assert_eq!(m.tolerance.to_string(), "±5 % on lengths, ±0.20 m on places");
+        // 12 m along a leg: 0.2 m + 5 % of 12 m.
+        assert!((m.tolerance.window_m(12.0) - 0.8).abs() < 1e-12);
+        let with = format!("{TINY}\n[tolerance]\nlength_frac = 0.1\nposition_m = 0.5\n");
+        let m = TopoMap::parse(&with, "tiny.toml").unwrap();
+        assert_eq!(m.tolerance, MapTolerance { length_frac: 0.1, position_m: 0.5 });
+        for (bad, named) in [("length_frac = 0.9", "length_frac"), ("position_m = -1", "position_m")] {
+            let text = format!("{TINY}\n[tolerance]\n{bad}\n");
+            let err = TopoMap::parse(&text, "tiny.toml").unwrap_err().to_string();
+            assert!(err.contains("[tolerance]") && err.contains(named), "{err}");
+        }
+        let typo = format!("{TINY}\n[tolerance]\nlenght_frac = 0.1\n");
+        assert!(TopoMap::parse(&typo, "tiny.toml").unwrap_err().to_string().contains("lenght_frac"));
     }
 
     #[test]

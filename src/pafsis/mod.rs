@@ -10,7 +10,7 @@ pub mod walls;
 
 pub use global::{Mission, Plan, PlanError, plan};
 pub use local::{Doorway, Goal, GoalStatus, Lane, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress, WallFixes};
-pub use map::{Action, MapError, PlaceKind, Side, TopoMap, Until};
+pub use map::{Action, MapError, MapTolerance, PlaceKind, Side, TopoMap, Until};
 pub use walls::WallSighting;
 
 use crate::config_error::ConfigError;
