@@ -14,10 +14,16 @@
 //! | rough and fine structure masks | §4.1–4.2, eq. 11–12 | [`structure`] |
 //! | obstacle zoom-in, layer 1 → 3 | §3.1, Fig. 6 | [`quadrants::zoom_in`] |
 //! | distance from flow and velocity (τ = r/ṙ, Z = t_z·τ) | §2.2 | [`geometry::locate`] |
-//! | envelope profile, plane fit, classifier features | §5 | [`features`] |
-//! | obstacle: blocks clearly nearer than the TPO planes, then Fig. 6 on them | §3.1 | [`Offis::step`] |
+//! | envelope profile, plane fit, classifier features (flownav) | ours | [`features`] |
+//! | the paper classifier's inputs from the structures and tilts (paper) | §4–5 | [`paper`] |
+//! | obstacle: blocks clearly nearer than the TPO planes; flownav: their nearest cluster; paper: Fig. 6 on them | §3.1 | [`Offis::step`] |
 //! | rough + three fine classifiers, TPO decision by maximum | §5, Fig. 11–13 | [`classify`] |
 //! | TPO decision over the last steps (class memberships averaged while driving) | ours | [`temporal`] |
+//!
+//! `offis.classifier` ([`ClassifierKind`]) picks what decides the TPO: `flownav` (default), the
+//! plane fit's features, with the paper's attributes computed for the logs only; or `paper`,
+//! the paper's structures (built from the blocks that are not floor) and tilts, with the
+//! obstacle placed by the Fig. 6 zoom.
 //!
 //! [`Offis::step`] sees one frame pair alone; [`Offis::step_filtered`], which the per-frame
 //! pipeline calls, also takes the robot's motion since the previous step and reports the TPO
