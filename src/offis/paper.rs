@@ -81,11 +81,11 @@ impl PaperFeatures {
     ) -> Self {
         let share = |hits: usize, n: usize, empty: f64| if n == 0 { empty } else { hits as f64 / n as f64 };
         let (mut hits, mut n) = (0, 0);
-        for r in 0..4 {
-            for c in 1..3 {
-                if !q.l2[r][c].is_empty() {
+        for (cells, marks) in q.l2.iter().zip(rough) {
+            for (cell, &mark) in cells[1..3].iter().zip(&marks[1..3]) {
+                if !cell.is_empty() {
                     n += 1;
-                    hits += usize::from(rough[r][c] == 1);
+                    hits += usize::from(mark == 1);
                 }
             }
         }
