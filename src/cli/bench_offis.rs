@@ -1,9 +1,12 @@
 //! `flownav bench-offis`: the OFFIS accuracy benchmark on a labelled scene set rendered by the
 //! simulator (see `flownav::sim::bench` and docs/offis.md). Prints the confusion matrix and
-//! the error figures, or the whole report as one JSON object with `--json`.
+//! the error figures, or the whole report as one JSON object with `--json`; with
+//! `--classifier both`, the flownav and the paper classifier on the same rendered frames, side
+//! by side.
 
 use super::Common;
-use crate::sim::bench::{self, BenchOptions};
+use crate::offis::ClassifierKind;
+use crate::sim::bench::{self, BenchOptions, Report};
 use anyhow::bail;
 
 #[derive(Debug, clap::Args)]
@@ -27,6 +30,10 @@ pub struct Args {
     /// drives through it (0: straight ahead).
     #[arg(long, default_value_t = 0.0, value_name = "RAD_S")]
     pub omega_max: f64,
+    /// Which classifier decides (`offis.classifier`): paper, flownav, or both on the same
+    /// frames, side by side (default: the config's, flownav unless set).
+    #[arg(long, value_parser = ["paper", "flownav", "both"])]
+    pub classifier: Option<String>,
     /// Print one line per scene (truth, prediction, obstacle) to stderr while running.
     #[arg(long)]
     pub verbose_scenes: bool,
@@ -54,13 +61,27 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         ..Default::default()
     };
     let started = std::time::Instant::now();
-    let report = bench::run(&cfg, &calib, &opts, |i, s| {
+    let kinds = match args.classifier.as_deref() {
+        None => vec![cfg.offis.classifier],
+        Some("both") => vec![ClassifierKind::Flownav, ClassifierKind::Paper],
+        Some(k) => vec![k.parse().map_err(anyhow::Error::msg)?],
+    };
+    let cfgs: Vec<_> = kinds
+        .iter()
+        .map(|&k| {
+            let mut c = cfg.clone();
+            c.offis.classifier = k;
+            c
+        })
+        .collect();
+    let reports = bench::run_each(&cfgs, &calib, &opts, |i, k, s| {
         if args.verbose_scenes {
             let obstacle =
                 |o: Option<(f64, f64)>| o.map_or("-".to_string(), |(d, b)| format!("{d:.2} m {:+.1}°", b.to_degrees()));
             let got = s.obstacle.map(|(d, b)| (d.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN)));
             eprintln!(
-                "{i:4} {:<9} -> {:<9} {:.2} | obstacle {} -> {} | {}",
+                "{i:4} {:<7} {:<9} -> {:<9} {:.2} | obstacle {} -> {} | {}",
+                kinds[k].name(),
                 s.truth.name(),
                 s.predicted.name(),
                 s.confidence,
@@ -70,15 +91,30 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
             );
         }
     })?;
+    // the first report keeps the JSON contract; with both, the paper's report is its field `paper`
+    #[derive(serde::Serialize)]
+    struct Both<'a> {
+        #[serde(flatten)]
+        first: &'a Report,
+        paper: &'a Report,
+    }
     if args.json {
-        println!("{}", serde_json::to_string(&report)?);
+        let line = match &reports[..] {
+            [first, paper] => serde_json::to_string(&Both { first, paper })?,
+            one => serde_json::to_string(&one[0])?,
+        };
+        println!("{line}");
     } else {
-        print!("{}", report.table());
+        match &reports[..] {
+            [first, paper] => print!("{}", bench::side_by_side(first, paper)),
+            one => print!("{}", one[0].table()),
+        }
         println!(
-            "({:.1} s; command: flownav bench-offis --scenes {} --seed {}{}{})",
+            "({:.1} s; command: flownav bench-offis --scenes {} --seed {}{}{}{})",
             started.elapsed().as_secs_f64(),
             args.scenes,
             args.seed,
+            args.classifier.as_deref().map_or(String::new(), |k| format!(" --classifier {k}")),
             if args.omega_max > 0.0 { format!(" --omega-max {}", args.omega_max) } else { String::new() },
             args.size.map_or(String::new(), |(w, h)| format!(" --size {w}x{h}"))
         );

@@ -1,5 +1,6 @@
-//! MOFIS, the motion module of the paper (§2.2): from OFFIS's perception and PAFSIS's goal to the
-//! set-point sent to the base, avoiding what the robot has seen.
+//! MOFIS, the motion module of the paper (§2.2): from PAFSIS's goal to the set-point sent to
+//! the base, avoiding what the robot has seen: the surface points OFFIS locates from the flow (per
+//! block, not its obstacle or TPO decision) and the odometry feed the obstacle memory.
 //!
 //! [`Mofis::step`] runs, in this order:
 //!

@@ -1,16 +1,81 @@
-//! Situation determination (paper §5, Fig. 11–13): a rough classifier decides the object group
-//! (flat: wall or door; bent: corner or corridor; empty), three fine classifiers decide the
-//! shape inside each group, and the TPO decision takes the maximum over the classes of
-//! `min(group degree, shape degree)`; that value is the reported confidence.
+//! Situation determination (paper §5, Fig. 11–13): a rough classifier decides the object group,
+//! three fine classifiers decide the shape inside each group, and the TPO decision takes the
+//! maximum over the classes of `min(group degree, shape degree)`; that value is the reported
+//! confidence.
 //!
-//! All four are Mamdani rule bases (`rules/offis/*.toml`, evaluated with [`crate::fuzzy`]),
-//! built into the binary and overridable with `offis.rules_dir`. They are loaded once; an
-//! evaluation allocates nothing.
+//! Two sets of rule bases share this machinery ([`ClassifierKind`], `offis.classifier`):
+//! - `flownav` (default): inputs are the [`Features`] of the plane fit to the per-block depths;
+//!   groups flat (wall, door), bent (corner, corridor), empty (none).
+//! - `paper`: inputs are the [`PaperFeatures`] read off the paper's rough and fine structures,
+//!   plane matrices and tilts (§4, eq. 4–12); groups plane (one surface across the view: wall,
+//!   door, corner), sides (eq. 11's pattern: door, corner, corridor), empty (none).
+//!
+//! All rule bases are Mamdani (`rules/offis/*.toml`, evaluated with [`crate::fuzzy`]), built into
+//! the binary and overridable with `offis.rules_dir`. They are loaded once; an evaluation
+//! allocates nothing. A fine classifier's output `shape` has terms named after TPO shapes
+//! (`wall`, `corner`, `door`, `corridor`, `none`); each names the class it supports.
 
 use super::features::Features;
+use super::paper::PaperFeatures;
 use crate::fuzzy::{Evaluation, FuzzyError, FuzzySystem, InputId, OutputTermId};
 use crate::perception::TpoShape;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+
+/// Which recognition path decides the TPO (`offis.classifier`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ClassifierKind {
+    /// Features of wall lines fitted to the per-block depths (docs/offis.md, *Features*).
+    #[default]
+    Flownav,
+    /// The paper's rough and fine structures, plane matrices and tilts (§4–5).
+    Paper,
+}
+
+impl ClassifierKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            ClassifierKind::Flownav => "flownav",
+            ClassifierKind::Paper => "paper",
+        }
+    }
+
+    /// The rule base files: rough first, then the fine one of each group in `groups()` order.
+    fn files(self) -> [(&'static str, &'static str); 4] {
+        match self {
+            ClassifierKind::Flownav => BUILTIN,
+            ClassifierKind::Paper => BUILTIN_PAPER,
+        }
+    }
+
+    /// The rough classifier's output terms (`group is ...`), in the order of the fine files.
+    fn groups(self) -> [&'static str; 3] {
+        match self {
+            ClassifierKind::Flownav => ["flat", "bent", "empty"],
+            ClassifierKind::Paper => ["plane", "sides", "empty"],
+        }
+    }
+
+    /// The inputs its rule bases may read.
+    pub fn features(self) -> &'static [&'static str] {
+        match self {
+            ClassifierKind::Flownav => &FEATURES,
+            ClassifierKind::Paper => &super::paper::FEATURES,
+        }
+    }
+}
+
+impl std::str::FromStr for ClassifierKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "flownav" => Ok(ClassifierKind::Flownav),
+            "paper" => Ok(ClassifierKind::Paper),
+            _ => Err(format!("unknown classifier '{s}' (known: flownav, paper)")),
+        }
+    }
+}
 
 /// The shipped rule bases, compiled in.
 const BUILTIN: [(&str, &str); 4] = [
@@ -18,6 +83,14 @@ const BUILTIN: [(&str, &str); 4] = [
     ("fine_flat.toml", include_str!("../../rules/offis/fine_flat.toml")),
     ("fine_bent.toml", include_str!("../../rules/offis/fine_bent.toml")),
     ("fine_empty.toml", include_str!("../../rules/offis/fine_empty.toml")),
+];
+
+/// The paper's rule bases (§5, Fig. 11), reconstructed from the structures of §4.
+const BUILTIN_PAPER: [(&str, &str); 4] = [
+    ("paper_rough.toml", include_str!("../../rules/offis/paper_rough.toml")),
+    ("paper_fine_plane.toml", include_str!("../../rules/offis/paper_fine_plane.toml")),
+    ("paper_fine_sides.toml", include_str!("../../rules/offis/paper_fine_sides.toml")),
+    ("paper_fine_empty.toml", include_str!("../../rules/offis/paper_fine_empty.toml")),
 ];
 
 /// Why the classifiers could not be loaded or evaluated.
@@ -35,11 +108,15 @@ pub enum ClassifyError {
     UnknownInput { origin: String, name: String, known: String },
     #[error("OFFIS rule base {origin} lacks {what} '{name}', which OFFIS reads; see docs/offis.md")]
     Missing { origin: String, what: &'static str, name: String },
+    #[error(
+        "OFFIS rule base {origin}: output term 'shape is {name}' is not a TPO shape (known: wall, corner, door, corridor, none)"
+    )]
+    UnknownShape { origin: String, name: String },
     #[error("OFFIS classifier evaluation failed: {0}")]
     Evaluate(#[from] FuzzyError),
 }
 
-/// The feature names the rule bases may use as inputs.
+/// The feature names the flownav rule bases may use as inputs.
 pub const FEATURES: [&str; 10] = [
     "near_frac",
     "planes",
@@ -53,18 +130,21 @@ pub const FEATURES: [&str; 10] = [
     "hidden_partner",
 ];
 
-fn feature(f: &Features, k: usize) -> f64 {
-    match k {
-        0 => f.near_frac,
-        1 => f.planes,
-        2 => f.pair_angle_deg,
-        3 => f.side_angle_deg,
-        4 => f.opposite,
-        5 => f.front_m,
-        6 => f.open_ahead_m,
-        7 => f.gap_m,
-        8 => f.meet_m,
-        _ => f.hidden_partner,
+impl Features {
+    /// The values in [`FEATURES`] order.
+    pub fn values(&self) -> [f64; 10] {
+        [
+            self.near_frac,
+            self.planes,
+            self.pair_angle_deg,
+            self.side_angle_deg,
+            self.opposite,
+            self.front_m,
+            self.open_ahead_m,
+            self.gap_m,
+            self.meet_m,
+            self.hidden_partner,
+        ]
     }
 }
 
@@ -79,13 +159,13 @@ struct Base {
 }
 
 impl Base {
-    fn new(sys: FuzzySystem) -> Result<Self, ClassifyError> {
+    fn new(sys: FuzzySystem, known: &[&str]) -> Result<Self, ClassifyError> {
         let mut feed = Vec::new();
         for v in sys.inputs() {
-            let k = FEATURES.iter().position(|f| *f == v.name).ok_or_else(|| ClassifyError::UnknownInput {
+            let k = known.iter().position(|f| *f == v.name).ok_or_else(|| ClassifyError::UnknownInput {
                 origin: sys.origin().into(),
                 name: v.name.clone(),
-                known: FEATURES.join(", "),
+                known: known.join(", "),
             })?;
             feed.push((sys.input(&v.name)?, k));
         }
@@ -100,9 +180,26 @@ impl Base {
         })
     }
 
-    fn eval(&mut self, f: &Features) -> Result<&Evaluation, ClassifyError> {
+    /// Every term of output `shape` with the class it names.
+    fn shapes(&self) -> Result<Vec<(OutputTermId, usize)>, ClassifyError> {
+        let missing =
+            || ClassifyError::Missing { origin: self.sys.origin().into(), what: "output", name: "shape".into() };
+        let out = self.sys.outputs().iter().find(|o| o.variable.name == "shape").ok_or_else(missing)?;
+        out.variable
+            .terms
+            .iter()
+            .map(|t| {
+                let k = TpoShape::ALL.iter().position(|s| s.name() == t.name).ok_or_else(|| {
+                    ClassifyError::UnknownShape { origin: self.sys.origin().into(), name: t.name.clone() }
+                })?;
+                Ok((self.term("shape", &t.name)?, k))
+            })
+            .collect()
+    }
+
+    fn eval(&mut self, values: &[f64]) -> Result<&Evaluation, ClassifyError> {
         for &(id, k) in &self.feed {
-            self.buf[id.0] = feature(f, k);
+            self.buf[id.0] = values[k];
         }
         self.sys.evaluate_into(&self.buf, &mut self.ev)?;
         Ok(&self.ev)
@@ -114,7 +211,8 @@ impl Base {
 pub struct Decision {
     pub shape: TpoShape,
     pub confidence: f64,
-    /// Group degrees: flat, bent, empty.
+    /// Group degrees, in the rough classifier's order (flownav: flat, bent, empty; paper:
+    /// plane, sides, empty).
     pub groups: [f64; 3],
     /// Class degrees `min(group, shape)` in [`TpoShape::ALL`] order.
     pub classes: [f64; 5],
@@ -123,26 +221,30 @@ pub struct Decision {
 /// The four rule bases (Fig. 11) and the TPO decision.
 #[derive(Clone, Debug)]
 pub struct Classifier {
+    kind: ClassifierKind,
     rough: Base,
-    flat: Base,
-    bent: Base,
-    empty: Base,
-    /// Output terms: rough flat/bent/empty; flat wall/door/none; bent corner/corridor/none; empty none.
+    /// The fine classifier of each group, with its output terms and the class each names.
+    fine: [(Base, Vec<(OutputTermId, usize)>); 3],
+    /// Output terms of the rough classifier, one per group.
     groups: [OutputTermId; 3],
-    flat_terms: [OutputTermId; 3],
-    bent_terms: [OutputTermId; 3],
-    empty_term: OutputTermId,
 }
 
 impl Classifier {
-    /// The built-in rule bases (`rules/offis/` at build time).
+    /// The built-in flownav rule bases (`rules/offis/` at build time).
     pub fn builtin() -> Result<Self, ClassifyError> {
         Self::load(None)
     }
 
-    /// The rule bases from `dir` (`rough.toml`, `fine_flat.toml`, `fine_bent.toml`,
+    /// The flownav rule bases from `dir` (`rough.toml`, `fine_flat.toml`, `fine_bent.toml`,
     /// `fine_empty.toml`), or the built-in ones when `dir` is `None`.
     pub fn load(dir: Option<&Path>) -> Result<Self, ClassifyError> {
+        Self::load_kind(ClassifierKind::Flownav, dir)
+    }
+
+    /// The rule bases of `kind` from `dir`, or the built-in ones when `dir` is `None`
+    /// (paper: `paper_rough.toml`, `paper_fine_plane.toml`, `paper_fine_sides.toml`,
+    /// `paper_fine_empty.toml`).
+    pub fn load_kind(kind: ClassifierKind, dir: Option<&Path>) -> Result<Self, ClassifyError> {
         let read = |(name, text): (&str, &str)| match dir {
             Some(dir) => {
                 let path = dir.join(name);
@@ -154,39 +256,53 @@ impl Classifier {
                     .map_err(|source| ClassifyError::Rules { path: PathBuf::from(origin), source })
             }
         };
-        let [r, f, b, e] = BUILTIN.map(read);
-        let (rough, flat, bent, empty) = (Base::new(r?)?, Base::new(f?)?, Base::new(b?)?, Base::new(e?)?);
+        let known = kind.features();
+        let [r, a, b, c] = kind.files().map(read);
+        let rough = Base::new(r?, known)?;
+        let fine = |sys: Result<FuzzySystem, ClassifyError>| -> Result<_, ClassifyError> {
+            let base = Base::new(sys?, known)?;
+            let shapes = base.shapes()?;
+            Ok((base, shapes))
+        };
+        let fine = [fine(a)?, fine(b)?, fine(c)?];
+        let g = kind.groups();
         Ok(Self {
-            groups: [rough.term("group", "flat")?, rough.term("group", "bent")?, rough.term("group", "empty")?],
-            flat_terms: [flat.term("shape", "wall")?, flat.term("shape", "door")?, flat.term("shape", "none")?],
-            bent_terms: [bent.term("shape", "corner")?, bent.term("shape", "corridor")?, bent.term("shape", "none")?],
-            empty_term: empty.term("shape", "none")?,
+            kind,
+            groups: [rough.term("group", g[0])?, rough.term("group", g[1])?, rough.term("group", g[2])?],
             rough,
-            flat,
-            bent,
-            empty,
+            fine,
         })
     }
 
-    /// The TPO decision for `f`: the class with the largest `min(group, shape)` degree (ties
-    /// go to the first in wall, corner, door, corridor, none order); no rule firing means
-    /// `none` with confidence 0.
+    pub fn kind(&self) -> ClassifierKind {
+        self.kind
+    }
+
+    /// The flownav TPO decision for `f` (see [`Classifier::classify_values`]).
     pub fn classify(&mut self, f: &Features) -> Result<Decision, ClassifyError> {
-        let ev = self.rough.eval(f)?;
+        self.classify_values(&f.values())
+    }
+
+    /// The paper's TPO decision for `f` (see [`Classifier::classify_values`]).
+    pub fn classify_paper(&mut self, f: &PaperFeatures) -> Result<Decision, ClassifyError> {
+        self.classify_values(&f.values())
+    }
+
+    /// The TPO decision for the inputs `values` (in [`ClassifierKind::features`] order): each
+    /// class's degree is the maximum over the groups of `min(group degree, the degree the
+    /// group's fine classifier gives the class)`, and the class with the largest degree wins
+    /// (ties go to the first in wall, corner, door, corridor, none order); no rule firing means
+    /// `none` with confidence 0.
+    pub fn classify_values(&mut self, values: &[f64]) -> Result<Decision, ClassifyError> {
+        let ev = self.rough.eval(values)?;
         let groups = self.groups.map(|t| ev.degree(t));
-        let ev = self.flat.eval(f)?;
-        let [wall, door, none_flat] = self.flat_terms.map(|t| ev.degree(t));
-        let ev = self.bent.eval(f)?;
-        let [corner, corridor, none_bent] = self.bent_terms.map(|t| ev.degree(t));
-        let none_empty = self.empty.eval(f)?.degree(self.empty_term);
-        let [g_flat, g_bent, g_empty] = groups;
-        let classes = [
-            g_flat.min(wall),
-            g_bent.min(corner),
-            g_flat.min(door),
-            g_bent.min(corridor),
-            g_empty.min(none_empty).max(g_flat.min(none_flat)).max(g_bent.min(none_bent)),
-        ];
+        let mut classes = [0.0f64; 5];
+        for ((base, shapes), g) in self.fine.iter_mut().zip(groups) {
+            let ev = base.eval(values)?;
+            for &(t, k) in shapes.iter() {
+                classes[k] = classes[k].max(g.min(ev.degree(t)));
+            }
+        }
         let best = decide(&classes);
         Ok(Decision { shape: TpoShape::ALL[best], confidence: classes[best], groups, classes })
     }

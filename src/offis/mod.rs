@@ -14,10 +14,16 @@
 //! | rough and fine structure masks | §4.1–4.2, eq. 11–12 | [`structure`] |
 //! | obstacle zoom-in, layer 1 → 3 | §3.1, Fig. 6 | [`quadrants::zoom_in`] |
 //! | distance from flow and velocity (τ = r/ṙ, Z = t_z·τ) | §2.2 | [`geometry::locate`] |
-//! | envelope profile, plane fit, classifier features | §5 | [`features`] |
-//! | obstacle: blocks clearly nearer than the TPO planes, then Fig. 6 on them | §3.1 | [`Offis::step`] |
+//! | envelope profile, plane fit, classifier features (flownav) | ours | [`features`] |
+//! | the paper classifier's inputs from the structures and tilts (paper) | §4–5 | [`paper`] |
+//! | obstacle: blocks clearly nearer than the TPO planes; flownav: their nearest cluster; paper: Fig. 6 on them | §3.1 | [`Offis::step`] |
 //! | rough + three fine classifiers, TPO decision by maximum | §5, Fig. 11–13 | [`classify`] |
 //! | TPO decision over the last steps (class memberships averaged while driving) | ours | [`temporal`] |
+//!
+//! `offis.classifier` ([`ClassifierKind`]) picks what decides the TPO: `flownav` (default), the
+//! plane fit's features, with the paper's attributes computed for the logs only; or `paper`,
+//! the paper's structures (built from the blocks that are not floor) and tilts, with the
+//! obstacle placed by the Fig. 6 zoom.
 //!
 //! [`Offis::step`] sees one frame pair alone; [`Offis::step_filtered`], which the per-frame
 //! pipeline calls, also takes the robot's motion since the previous step and reports the TPO
@@ -28,6 +34,7 @@
 pub mod classify;
 pub mod features;
 pub mod geometry;
+pub mod paper;
 pub mod planes;
 pub mod points;
 pub mod quadrants;
@@ -39,10 +46,11 @@ use crate::config_error::ConfigError;
 use crate::flow::FlowField;
 use crate::perception::{Obstacle, Perception, Tpo, TpoShape};
 use classify::Classifier;
-pub use classify::{ClassifyError, Decision};
+pub use classify::{ClassifierKind, ClassifyError, Decision};
 use features::{Bin, Features, TpoModel};
 use geometry::{DepthParams, FrameMotion, Located, PinholeCamera};
 use hal::{BodyVelocity, Calibration};
+use paper::PaperFeatures;
 use planes::{PlaneTolerance, TiltParams};
 use quadrants::{Grid, OutlierParams, Quadrants, Zoom};
 use serde::{Deserialize, Serialize};
@@ -69,13 +77,18 @@ pub enum OffisError {
 }
 
 /// OFFIS parameters: the `[offis]` table of the config file (sub-tables `[offis.outlier]`,
-/// `[offis.plane]`, `[offis.tilt]`, `[offis.depth]`, `[offis.temporal]`, and `rules_dir`).
+/// `[offis.plane]`, `[offis.tilt]`, `[offis.depth]`, `[offis.temporal]`, and `classifier`,
+/// `rules_dir`).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct OffisParams {
+    /// Which recognition path decides the TPO and the obstacle: `"flownav"` (plane fit to the
+    /// per-block depths, the default) or `"paper"` (the paper's structures and tilts, §4–5).
+    pub classifier: ClassifierKind,
     /// Folder with the situation classifiers' rule bases (`rough.toml`, `fine_flat.toml`,
-    /// `fine_bent.toml`, `fine_empty.toml`); unset = the copies of `rules/offis/` built into
-    /// the binary.
+    /// `fine_bent.toml`, `fine_empty.toml`; for the paper classifier `paper_rough.toml`,
+    /// `paper_fine_plane.toml`, `paper_fine_sides.toml`, `paper_fine_empty.toml`); unset = the
+    /// copies of `rules/offis/` built into the binary.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub rules_dir: Option<PathBuf>,
     pub outlier: OutlierParams,
@@ -165,8 +178,10 @@ pub struct Attributes {
     pub bins: Vec<Bin>,
     /// The TPO's planes fitted to it.
     pub model: TpoModel,
-    /// The classifier inputs.
+    /// The classifier inputs (flownav's, computed in both modes).
     pub features: Features,
+    /// The paper classifier's inputs (computed in both modes; they decide in paper mode).
+    pub paper: PaperFeatures,
     /// The classifiers' degrees and the TPO decision of this frame pair alone (default when not
     /// translating).
     pub decision: Decision,
@@ -204,7 +219,7 @@ pub struct Offis {
 impl Offis {
     /// OFFIS with the situation classifiers from `params.rules_dir`, or the built-in ones.
     pub fn new(params: OffisParams) -> Result<Self, ClassifyError> {
-        let classifier = Classifier::load(params.rules_dir.as_deref())?;
+        let classifier = Classifier::load_kind(params.classifier, params.rules_dir.as_deref())?;
         Ok(Self {
             filter: ClassFilter::new(params.temporal),
             params,
@@ -316,15 +331,6 @@ impl Offis {
             &mut self.inlier,
             &mut self.scratch,
         );
-        let q = Quadrants::compute(grid, &self.u, &self.v, &self.inlier);
-        // Eq. (2)–(10), §4.1–4.2, Fig. 6.
-        let vplane_l2 = planes::vplane_l2(&q.l2, &plane_p);
-        let hplane_l2 = planes::hplane_l2(&q.l2, &plane_p);
-        let vplane_l3 = planes::vplane_l3(&q.l3, &plane_p);
-        let hplane_l3 = planes::hplane_l3(&q.l3, &plane_p);
-        let rough = structure::rough_mask(&q.l2, &vplane_l2, &hplane_l2);
-        let fine = structure::fine_mask(&q.l3, &vplane_l3, &hplane_l3, &rough);
-
         // Distances (§2.2): only while translating.
         let translating = odo.v.abs() >= depth_p.min_speed_m_s;
         let foe = motion.foe(&cam).filter(|_| translating);
@@ -336,21 +342,48 @@ impl Offis {
                 _ => None,
             };
         }
-        // The paper's Fig. 6 zoom-in, on the blocks that are not floor (logged as an attribute).
+        // The inliers that are not floor: what the paper's zoom-in (Fig. 6) looks at, and in
+        // paper mode what its structures are built from (the paper's figures show no floor; its
+        // flow, the biggest in view below the horizon, would mark the bottom rows everywhere).
         let floor_m = depth_p.floor_height_m;
         let z_m = cam.mount_m[2];
         self.candidate.resize(n, false);
         for (i, keep) in self.candidate.iter_mut().enumerate() {
             *keep = self.inlier[i] && !self.located[i].is_some_and(|l| l.up + z_m < floor_m);
         }
-        let zoom = quadrants::zoom_in(&Quadrants::compute(grid, &self.u, &self.v, &self.candidate));
+        let paper_mode = self.params.classifier == ClassifierKind::Paper;
+        let q = Quadrants::compute(grid, &self.u, &self.v, if paper_mode { &self.candidate } else { &self.inlier });
+        // Eq. (2)–(10), §4.1–4.2, Fig. 6.
+        let vplane_l2 = planes::vplane_l2(&q.l2, &plane_p);
+        let hplane_l2 = planes::hplane_l2(&q.l2, &plane_p);
+        let vplane_l3 = planes::vplane_l3(&q.l3, &plane_p);
+        let hplane_l3 = planes::hplane_l3(&q.l3, &plane_p);
+        let rough = structure::rough_mask(&q.l2, &vplane_l2, &hplane_l2);
+        let fine = structure::fine_mask(&q.l3, &vplane_l3, &hplane_l3, &rough);
+        let tilt_l3 = planes::tilt_l3(&q.l3, &tilt_p);
+        let zoom = if paper_mode {
+            quadrants::zoom_in(&q)
+        } else {
+            quadrants::zoom_in(&Quadrants::compute(grid, &self.u, &self.v, &self.candidate))
+        };
+        let paper = if paper_mode && foe.is_some() {
+            let mut range_l2 = [[None; 4]; 4];
+            for (r, row) in range_l2.iter_mut().enumerate() {
+                for (c, x) in row.iter_mut().enumerate() {
+                    *x = self.cell_median(grid, 4, [r, c], Located::range);
+                }
+            }
+            PaperFeatures::compute(&q, &rough, &fine, &tilt_l3, tilt_p.k_tilt, &range_l2)
+        } else {
+            PaperFeatures::default()
+        };
         let mut forward_l3 = [[None; 8]; 8];
         let mut range_l3 = [[None; 8]; 8];
         if foe.is_some() {
             for r in 0..8 {
                 for c in 0..8 {
-                    forward_l3[r][c] = self.cell_median(grid, [r, c], |l| l.forward);
-                    range_l3[r][c] = self.cell_median(grid, [r, c], Located::range);
+                    forward_l3[r][c] = self.cell_median(grid, 8, [r, c], |l| l.forward);
+                    range_l3[r][c] = self.cell_median(grid, 8, [r, c], Located::range);
                 }
             }
         }
@@ -398,7 +431,11 @@ impl Offis {
         let model = TpoModel::fit(&bins);
         let features = Features::compute(&bins, &model);
         let decision = if foe.is_some() {
-            self.classifier.classify(&features).map_err(OffisError::Classify)?
+            match self.params.classifier {
+                ClassifierKind::Flownav => self.classifier.classify(&features),
+                ClassifierKind::Paper => self.classifier.classify_paper(&paper),
+            }
+            .map_err(OffisError::Classify)?
         } else {
             Decision::default()
         };
@@ -430,8 +467,9 @@ impl Offis {
             }
         }
         let min_blocks = (3 * n).div_ceil(256).max(3);
-        let cluster = self.nearest_cluster(grid, min_blocks);
+        let cluster = if paper_mode { None } else { self.nearest_cluster(grid, min_blocks) };
         let (obstacle, obstacle_cluster) = match cluster {
+            _ if paper_mode => self.zoomed_obstacle(grid, min_blocks),
             Some((label, size, distance, bearing)) => {
                 for (k, m) in self.candidate.iter_mut().enumerate() {
                     *m = self.label[k] == label;
@@ -473,7 +511,7 @@ impl Offis {
             vplane_l3,
             hplane_l3,
             tilt_l2: planes::tilt_l2(&q.l2, &tilt_p),
-            tilt_l3: planes::tilt_l3(&q.l3, &tilt_p),
+            tilt_l3,
             rough,
             fine,
             zoom,
@@ -485,6 +523,7 @@ impl Offis {
             bins,
             model,
             features,
+            paper,
             decision,
             filtered,
             obstacle_blocks,
@@ -492,6 +531,42 @@ impl Offis {
         };
         let tpo = Tpo { shape: filtered.shape, confidence: filtered.confidence, distance_m: tpo_distance };
         Ok(Perception { tpo, obstacle, rough, fine })
+    }
+
+    /// Paper mode: the obstacle located by the zoom of Fig. 6 over the obstacle blocks
+    /// (`self.near`): the layer-1 quadrant with the biggest average flow, its biggest layer-2
+    /// child, its biggest layer-3 child ("the person is defined as the nearest obstacle due to
+    /// its biggest average optical flow vector", §5). Present when that layer-1 quadrant holds
+    /// at least `min_blocks` of them (fewer is matching noise); the distance and bearing are the
+    /// medians of the located obstacle blocks in the zoomed layer-3 cell. Returns the obstacle
+    /// and the number of obstacle blocks in its cell.
+    fn zoomed_obstacle(&mut self, grid: Grid, min_blocks: usize) -> (Obstacle, usize) {
+        let q = Quadrants::compute(grid, &self.u, &self.v, &self.near);
+        let Some(z) = quadrants::zoom_in(&q) else { return (Obstacle::default(), 0) };
+        if (q.l1[z.l1[0]][z.l1[1]].n as usize) < min_blocks {
+            return (Obstacle::default(), 0);
+        }
+        let [r, c] = z.l3;
+        let (h, w) = (grid.rows / 8, grid.cols / 8);
+        self.scratch.clear();
+        self.scratch2.clear();
+        for br in r * h..(r + 1) * h {
+            for bc in c * w..(c + 1) * w {
+                let i = br * grid.cols + bc;
+                if let Some(l) = self.located[i].filter(|_| self.near[i]) {
+                    self.scratch.push(l.range());
+                    self.scratch2.push(l.bearing());
+                }
+            }
+        }
+        let size = self.scratch.len();
+        let o = Obstacle {
+            present: true,
+            distance_m: quadrants::median(&mut self.scratch),
+            bearing_rad: quadrants::median(&mut self.scratch2),
+            cell: Some(z.l3),
+        };
+        (o, size)
     }
 
     /// Labels the 8-connected clusters of obstacle blocks (`self.near`) and returns the nearest
@@ -550,13 +625,16 @@ impl Offis {
         best
     }
 
-    /// Median of `f` over the located blocks of layer-3 cell `[r, c]`.
-    fn cell_median(&mut self, grid: Grid, [r, c]: [usize; 2], f: impl Fn(&Located) -> f64) -> Option<f64> {
-        let (h, w) = (grid.rows / 8, grid.cols / 8);
+    /// Median of `f` over the located blocks of cell `[r, c]` of the `side × side` layer: on
+    /// layer 3 (`side` 8) all of them, on layer 2 (`side` 4, the paper's structures) those
+    /// that are not floor.
+    fn cell_median(&mut self, grid: Grid, side: usize, [r, c]: [usize; 2], f: impl Fn(&Located) -> f64) -> Option<f64> {
+        let (h, w) = (grid.rows / side, grid.cols / side);
         self.scratch.clear();
         for br in r * h..(r + 1) * h {
             for bc in c * w..(c + 1) * w {
-                if let Some(l) = &self.located[br * grid.cols + bc] {
+                let i = br * grid.cols + bc;
+                if let Some(l) = self.located[i].as_ref().filter(|_| side == 8 || self.candidate[i]) {
                     self.scratch.push(f(l));
                 }
             }

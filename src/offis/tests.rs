@@ -406,3 +406,62 @@ fn the_flow_measures_the_odometrys_yaw_error() {
     let blocks = still.field.vectors.iter().map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
     assert_eq!(super::geometry::yaw_correction(&cam, BodyVelocity::new(0.0, 0.3), DT, blocks, &mut Vec::new()), None);
 }
+
+fn run_paper(scene: &Scene, vel: BodyVelocity) -> (Perception, Attributes) {
+    let c = calib(0.0);
+    let pair = scene.flow(&c, 16, 16, vel, DT);
+    let params = OffisParams { classifier: ClassifierKind::Paper, ..OffisParams::default() };
+    let mut offis = Offis::new(params).unwrap();
+    let p = offis.step(&pair.field, vel, DT, &c).unwrap();
+    (p, offis.attributes().clone())
+}
+
+#[test]
+fn the_paper_classifier_reads_fig_7_as_a_door() {
+    // Fig. 7 ("coping with a door"), eq. (11): the outer columns marked; the walls beside the
+    // opening face the camera (tilts 1), the opening is deeper than them
+    for vel in [BodyVelocity::new(0.5, 0.0), BodyVelocity::new(0.5, 0.25)] {
+        let (p, a) = run_paper(&door(), vel);
+        assert_eq!(p.rough, [[1, 0, 0, 1]; 4], "{vel:?}");
+        let f = a.paper;
+        assert_eq!(f.rough_inner, 0.0, "{vel:?}: {f:?}");
+        assert!((f.tilt_left - 1.0).abs() < 0.05 && (f.tilt_right - 1.0).abs() < 0.05, "{vel:?}: {f:?}");
+        assert!(f.tilt_centre < 0.5, "{vel:?}: {f:?}");
+        assert_eq!(p.tpo.shape, TpoShape::Door, "{vel:?}: {f:?} {:?}", a.decision);
+        assert!(p.tpo.confidence > 0.9, "{:?}", p.tpo);
+        assert!(!p.obstacle.present, "{:?}", p.obstacle);
+    }
+}
+
+#[test]
+fn the_paper_classifier_reads_fig_8_as_a_corridor_with_an_obstacle() {
+    // Fig. 8, eq. (12): the side walls recede towards a far centre; the box low on the left is
+    // the obstacle, located by the zoom of Fig. 6 in the bottom-left cells of the fine structure
+    let mut want = [[1, 0, 0, 0, 0, 0, 0, 1]; 8];
+    want[6][1] = 1;
+    want[7][1] = 1;
+    for vel in [BodyVelocity::new(0.5, 0.0), BodyVelocity::new(0.5, -0.2)] {
+        let (p, a) = run_paper(&corridor_with_box(), vel);
+        assert_eq!(p.fine, want, "{vel:?}: rough {:?}", p.rough);
+        let f = a.paper;
+        assert!(f.tilt_left > 1.2 && f.tilt_right > 1.2 && f.tilt_centre < 0.3, "{vel:?}: {f:?}");
+        assert_eq!(p.tpo.shape, TpoShape::Corridor, "{vel:?}: {f:?} {:?}", a.decision);
+        let o = p.obstacle;
+        assert!(o.present, "{vel:?}: {o:?}");
+        let [r, c] = o.cell.unwrap();
+        assert!(r >= 5 && c <= 1, "{vel:?}: cell {r},{c}");
+        // the box face is 2.0 m ahead of the camera at frame B, 0.5–1.0 m to the left
+        let d = o.distance_m.unwrap();
+        assert!((2.0..2.4).contains(&d), "{vel:?}: {d}");
+        assert!(o.bearing_rad.unwrap() > 0.0, "{vel:?}: {o:?}");
+    }
+}
+
+#[test]
+fn the_classifier_is_a_config_value() {
+    let p: OffisParams = toml::from_str("classifier = \"paper\"\n").unwrap();
+    assert_eq!(p.classifier, ClassifierKind::Paper);
+    assert_eq!(OffisParams::default().classifier, ClassifierKind::Flownav);
+    let e = toml::from_str::<OffisParams>("classifier = \"papr\"\n").unwrap_err().to_string();
+    assert!(e.contains("classifier") && e.contains("paper") && e.contains("flownav"), "{e}");
+}

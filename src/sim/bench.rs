@@ -10,6 +10,7 @@
 //! `SplitMix64(s · 1_000_003 + i)`.
 
 use crate::config::Config;
+use crate::offis::ClassifierKind;
 use crate::perception::{Perception, TpoShape};
 use crate::step::{Pipeline, PipelineError, StepError};
 use hal::{BodyVelocity, Calibration, Frame, LumaImage};
@@ -195,11 +196,15 @@ pub struct Sample {
     pub obstacle_blocks: [usize; 2],
     /// The planes fitted to the profile, for diagnosis.
     pub model: crate::offis::features::TpoModel,
+    /// The paper classifier's inputs (paper mode; the defaults otherwise).
+    pub paper: crate::offis::paper::PaperFeatures,
 }
 
 /// The benchmark's result.
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
+    /// `offis.classifier` of the run: "flownav" or "paper".
+    pub classifier: &'static str,
     pub scenes: usize,
     pub seed: u64,
     /// The turn rates were drawn from ±this, rad/s (0: straight drives).
@@ -273,6 +278,19 @@ pub fn run(
     opts: &BenchOptions,
     mut progress: impl FnMut(usize, &Sample),
 ) -> Result<Report, BenchError> {
+    let mut reports = run_each(std::slice::from_ref(cfg), calib, opts, |i, _, s| progress(i, s))?;
+    Ok(reports.remove(0))
+}
+
+/// As [`run`], for several configurations (e.g. the two `offis.classifier`s) on the same
+/// rendered frames: one report per configuration, in order. `progress(scene, config, sample)`
+/// is called after each scene and configuration.
+pub fn run_each(
+    cfgs: &[Config],
+    calib: &Calibration,
+    opts: &BenchOptions,
+    mut progress: impl FnMut(usize, usize, &Sample),
+) -> Result<Vec<Report>, BenchError> {
     if opts.scenes == 0 {
         return Err(BenchError::Options("--scenes must be at least 1".into()));
     }
@@ -285,52 +303,61 @@ pub fn run(
     if opts.frames < 2 {
         return Err(BenchError::Options("a scene needs at least 2 frames (one frame pair)".into()));
     }
-    let mut pipeline = Pipeline::new(cfg, calib.clone(), None)?;
-    let mut samples = Vec::with_capacity(opts.scenes);
+    if cfgs.is_empty() {
+        return Err(BenchError::Options("no configuration to run".into()));
+    }
+    let mut pipelines = Vec::with_capacity(cfgs.len());
+    for cfg in cfgs {
+        pipelines.push(Pipeline::new(cfg, calib.clone(), None)?);
+    }
+    let mut samples: Vec<Vec<Sample>> = cfgs.iter().map(|_| Vec::with_capacity(opts.scenes)).collect();
     let mut frames = Vec::new();
     for i in 0..opts.scenes {
         let c = case(opts.seed, i, opts);
         render_sequence(&c, calib, opts, i, &mut frames);
         let truth = GroundTruth::new(&c.scene.world, calib).frame(c.scene.start(calib));
         let odo = BodyVelocity::new(opts.velocity, c.omega);
-        // a new scene: nothing of the last one is remembered (a pair gap, as after a stop)
-        pipeline.fail_safe();
-        let step_err = |source| BenchError::Step { index: i, scene: c.label.clone(), source: Box::new(source) };
-        let mut last = None;
-        for frame in frames.drain(..) {
-            last = pipeline.step(frame, odo).map_err(step_err)?;
+        for (k, pipeline) in pipelines.iter_mut().enumerate() {
+            // a new scene: nothing of the last one is remembered (a pair gap, as after a stop)
+            pipeline.fail_safe();
+            let step_err = |source| BenchError::Step { index: i, scene: c.label.clone(), source: Box::new(source) };
+            let mut last = None;
+            for frame in &frames {
+                last = pipeline.step(frame.clone(), odo).map_err(step_err)?;
+            }
+            let out = last.expect("a sequence of at least two frames gives a step");
+            let p: &Perception = &out.perception;
+            let sample = Sample {
+                index: i,
+                label: c.label.clone(),
+                truth: shape_of(truth.tpo.shape),
+                predicted: p.tpo.shape,
+                confidence: p.tpo.confidence,
+                truth_tpo_m: truth.tpo.distance_m,
+                tpo_m: p.tpo.distance_m,
+                truth_obstacle: truth
+                    .obstacle
+                    .distance_m
+                    .zip(truth.obstacle.bearing_rad)
+                    .filter(|_| truth.obstacle.present),
+                obstacle: p.obstacle.present.then_some((p.obstacle.distance_m, p.obstacle.bearing_rad)),
+                features: pipeline.offis().attributes().features,
+                profile: pipeline.offis().attributes().bins.iter().map(|b| b.point).collect(),
+                obstacle_blocks: [
+                    pipeline.offis().attributes().obstacle_blocks,
+                    pipeline.offis().attributes().obstacle_cluster,
+                ],
+                model: pipeline.offis().attributes().model,
+                paper: pipeline.offis().attributes().paper,
+            };
+            progress(i, k, &sample);
+            samples[k].push(sample);
         }
-        let out = last.expect("a sequence of at least two frames gives a step");
-        let p: &Perception = &out.perception;
-        let sample = Sample {
-            index: i,
-            label: c.label,
-            truth: shape_of(truth.tpo.shape),
-            predicted: p.tpo.shape,
-            confidence: p.tpo.confidence,
-            truth_tpo_m: truth.tpo.distance_m,
-            tpo_m: p.tpo.distance_m,
-            truth_obstacle: truth
-                .obstacle
-                .distance_m
-                .zip(truth.obstacle.bearing_rad)
-                .filter(|_| truth.obstacle.present),
-            obstacle: p.obstacle.present.then_some((p.obstacle.distance_m, p.obstacle.bearing_rad)),
-            features: pipeline.offis().attributes().features,
-            profile: pipeline.offis().attributes().bins.iter().map(|b| b.point).collect(),
-            obstacle_blocks: [
-                pipeline.offis().attributes().obstacle_blocks,
-                pipeline.offis().attributes().obstacle_cluster,
-            ],
-            model: pipeline.offis().attributes().model,
-        };
-        progress(i, &sample);
-        samples.push(sample);
     }
-    Ok(report(opts, calib, samples))
+    Ok(samples.into_iter().zip(cfgs).map(|(s, cfg)| report(opts, calib, cfg.offis.classifier, s)).collect())
 }
 
-fn report(opts: &BenchOptions, calib: &Calibration, samples: Vec<Sample>) -> Report {
+fn report(opts: &BenchOptions, calib: &Calibration, classifier: ClassifierKind, samples: Vec<Sample>) -> Report {
     let mut confusion = [[0usize; 5]; 5];
     let (mut dist, mut bearing, mut tpo_err) = (Vec::new(), Vec::new(), Vec::new());
     let (mut obstacle_scenes, mut detected, mut clear, mut false_alarms) = (0, 0, 0, 0);
@@ -362,6 +389,7 @@ fn report(opts: &BenchOptions, calib: &Calibration, samples: Vec<Sample>) -> Rep
     let correct: usize = (0..5).map(|k| confusion[k][k]).sum();
     let frac = |a: usize, b: usize| if b == 0 { f64::NAN } else { a as f64 / b as f64 };
     Report {
+        classifier: classifier.name(),
         scenes: samples.len(),
         seed: opts.seed,
         omega_max: opts.omega_max,
@@ -384,7 +412,8 @@ impl Report {
     /// The human-readable summary (confusion matrix and error figures).
     pub fn table(&self) -> String {
         let mut s = format!(
-            "OFFIS accuracy: {} scenes, seed {}, {}x{}, {}\n\nconfusion (rows = truth, columns = predicted):\n{:>10}",
+            "OFFIS accuracy ({} classifier): {} scenes, seed {}, {}x{}, {}\n\nconfusion (rows = truth, columns = predicted):\n{:>10}",
+            self.classifier,
             self.scenes,
             self.seed,
             self.width,
@@ -438,6 +467,22 @@ impl Report {
     }
 }
 
+/// Two reports' tables side by side (same scenes, e.g. the two classifiers), left first.
+pub fn side_by_side(left: &Report, right: &Report) -> String {
+    let (a, b) = (left.table(), right.table());
+    let width = a.lines().map(|l| l.chars().count()).max().unwrap_or(0) + 4;
+    let (a, b): (Vec<&str>, Vec<&str>) = (a.lines().collect(), b.lines().collect());
+    let mut s = String::new();
+    for k in 0..a.len().max(b.len()) {
+        let l = a.get(k).copied().unwrap_or("");
+        let r = b.get(k).copied().unwrap_or("");
+        let line = format!("{l}{:pad$}{r}", "", pad = width - l.chars().count());
+        s.push_str(line.trim_end());
+        s.push('\n');
+    }
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -456,6 +501,20 @@ mod tests {
             let c = case(1, i, &opts);
             c.scene.world.validate(&c.label).unwrap();
         }
+    }
+
+    #[test]
+    fn two_reports_print_side_by_side() {
+        let opts = BenchOptions::default();
+        let calib = Calibration::nominal_c310();
+        let a = report(&opts, &calib, ClassifierKind::Flownav, Vec::new());
+        let b = report(&opts, &calib, ClassifierKind::Paper, Vec::new());
+        let both = side_by_side(&a, &b);
+        let first = both.lines().next().unwrap();
+        assert!(first.starts_with("OFFIS accuracy (flownav classifier)"), "{both}");
+        assert!(first.contains("OFFIS accuracy (paper classifier)"), "{both}");
+        assert_eq!(both.lines().count(), a.table().lines().count());
+        assert_eq!(both.lines().filter(|l| l.matches("wall").count() == 2).count(), 2, "{both}");
     }
 
     #[test]
