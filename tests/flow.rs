@@ -236,6 +236,33 @@ fn cli_json_contract() {
     assert_eq!((img.width(), img.height()), (512, 512));
 }
 
+/// `--repeat N` keeps every field of the contract and appends a `timing` object: N counted
+/// calls, min ≤ median ≤ p90 (wall and thread CPU time), the engine and what it ran on.
+#[test]
+fn cli_repeat_timing() {
+    let d = data_dir().join("graf_shift_512");
+    let (a, b) = (d.join("0000.png"), d.join("0001.png"));
+    let args = ["flow", a.to_str().unwrap(), b.to_str().unwrap(), "--json", "--rows", "4", "--cols", "4"];
+    let plain = flownav(&[&args[..], &["--flow-backend", "cpu"]].concat());
+    let timed = flownav(&[&args[..], &["--flow-backend", "cpu", "--repeat", "7"]].concat());
+    assert!(timed.status.success(), "{}", String::from_utf8_lossy(&timed.stderr));
+    let plain: serde_json::Value = serde_json::from_slice(&plain.stdout).unwrap();
+    let mut timed: serde_json::Value = serde_json::from_slice(&timed.stdout).unwrap();
+    let t = timed.as_object_mut().unwrap().remove("timing").expect("a timing object");
+    assert_eq!(timed, plain, "the contract's fields are unchanged");
+    assert_eq!((t["n"].as_u64(), t["warmup"].as_u64()), (Some(7), Some(1)), "{t}");
+    assert_eq!(t["engine"], "cpu");
+    assert!(t["adapter"].as_str().is_some_and(|s| s.contains("SAD")), "{t}");
+    for prefix in ["", "cpu_"] {
+        let f = |k: &str| t[format!("{prefix}{k}_ms")].as_f64().unwrap_or_else(|| panic!("{prefix}{k}_ms in {t}"));
+        assert!(0.0 < f("min") && f("min") <= f("median") && f("median") <= f("p90"), "{t}");
+    }
+    assert!(t["min_ms"].as_f64() <= t["mean_ms"].as_f64(), "{t}");
+
+    let bad = flownav(&[&args[..], &["--repeat", "0"]].concat());
+    assert!(!bad.status.success() && String::from_utf8_lossy(&bad.stderr).contains("--repeat"));
+}
+
 /// Bad input gives one clear error and a non-zero exit, never a panic.
 #[test]
 fn cli_bad_inputs() {

@@ -43,6 +43,10 @@ pub struct Args {
     /// Block placement (overrides flow.placement).
     #[arg(long, value_enum)]
     pub placement: Option<Placement>,
+    /// Compute the pair N times (after one uncounted warm-up) and report the time per pair:
+    /// min, median and p90 in milliseconds, with the engine and the adapter it ran on.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub repeat: Option<u32>,
 }
 
 impl Args {
@@ -81,10 +85,84 @@ struct JsonField<'a> {
     height: usize,
     vectors: Vec<JsonVector>,
     backend: &'a str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    timing: Option<&'a Timing>,
+}
+
+/// Wall time per frame pair of `flownav flow --repeat N`: the `timing` object of `--json`.
+/// Each figure is one `compute` call (frame upload, prefilter, matching, and for the GPU the
+/// readback), images already decoded; one warm-up call before them is not counted (it allocates
+/// the buffers and, on a GPU, compiles the shaders).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Timing {
+    /// Counted calls.
+    pub n: u32,
+    /// Uncounted calls before them.
+    pub warmup: u32,
+    pub min_ms: f64,
+    pub median_ms: f64,
+    pub p90_ms: f64,
+    pub mean_ms: f64,
+    /// The same per-call figures in CPU time of the calling thread (`CLOCK_THREAD_CPUTIME_ID`):
+    /// what one core spends per pair on the CPU engine, unaffected by other processes on a
+    /// shared machine; for the GPU engine, the host's share only.
+    pub cpu_min_ms: f64,
+    pub cpu_median_ms: f64,
+    pub cpu_p90_ms: f64,
+    /// `"cpu"` or `"gpu"`.
+    pub engine: String,
+    /// What the engine ran on: the GPU adapter, or the CPU model with its SAD kernel.
+    pub adapter: String,
+}
+
+impl Timing {
+    /// Statistics of `ms` (not empty): p90 is the nearest-rank percentile (the smallest value
+    /// with at least 90 % of the values at or below it), the median the middle value (the mean
+    /// of the two middle ones for an even count).
+    /// `wall` and `cpu` are the per-call times in ms (the same count).
+    pub fn new(wall: Vec<f64>, cpu: Vec<f64>, warmup: u32, engine: &str, adapter: String) -> Self {
+        assert!(!wall.is_empty() && wall.len() == cpu.len(), "timing needs one wall and one CPU time per call");
+        let n = wall.len();
+        let mean_ms = wall.iter().sum::<f64>() / n as f64;
+        let (min_ms, median_ms, p90_ms) = stats(wall);
+        let (cpu_min_ms, cpu_median_ms, cpu_p90_ms) = stats(cpu);
+        Self {
+            n: n as u32,
+            warmup,
+            min_ms,
+            median_ms,
+            p90_ms,
+            mean_ms,
+            cpu_min_ms,
+            cpu_median_ms,
+            cpu_p90_ms,
+            engine: engine.to_string(),
+            adapter,
+        }
+    }
+}
+
+/// (min, median, p90) of a non-empty sample.
+fn stats(mut v: Vec<f64>) -> (f64, f64, f64) {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    let p90 = v[(n * 9).div_ceil(10) - 1];
+    (v[0], median(v).expect("not empty"), p90)
+}
+
+/// CPU time of the calling thread, ms.
+fn thread_cpu_ms() -> f64 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map_or(0.0, |t| t.tv_sec() as f64 * 1e3 + t.tv_nsec() as f64 * 1e-6)
 }
 
 /// The JSON text of a field (the `flownav flow --json` contract).
 pub fn to_json(field: &FlowField, backend: &str) -> String {
+    to_json_timed(field, backend, None)
+}
+
+/// [`to_json`] with the `timing` object of `--repeat` appended.
+pub fn to_json_timed(field: &FlowField, backend: &str, timing: Option<&Timing>) -> String {
     let out = JsonField {
         grid: [field.rows, field.cols],
         width: field.width,
@@ -103,6 +181,7 @@ pub fn to_json(field: &FlowField, backend: &str) -> String {
             })
             .collect(),
         backend,
+        timing,
     };
     serde_json::to_string(&out).expect("flow field serialises")
 }
@@ -113,17 +192,39 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     cfg.validate().context("after applying the flow command's flags")?;
     let a = frames::load_luma(&args.a)?;
     let b = frames::load_luma(&args.b)?;
-    let mut engine = flow::engine(&cfg.flow)?;
+    let (mut engine, report) = flow::create_engine(&cfg.flow)?;
     let backend = engine.name();
+    let context = || format!("computing flow from {} to {}", args.a.display(), args.b.display());
+    let mut timing = None;
+    if let Some(n) = args.repeat {
+        const WARMUP: u32 = 1;
+        for _ in 0..WARMUP {
+            engine.compute(&a, &b).with_context(context)?;
+        }
+        let (mut wall, mut cpu) = (Vec::with_capacity(n as usize), Vec::with_capacity(n as usize));
+        for _ in 0..n {
+            let (t0, c0) = (Instant::now(), thread_cpu_ms());
+            engine.compute(&a, &b).with_context(context)?;
+            cpu.push(thread_cpu_ms() - c0);
+            wall.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        let adapter = report.adapter.clone().unwrap_or_else(|| cpu_adapter(&cfg.flow));
+        timing = Some(Timing::new(wall, cpu, WARMUP, backend, adapter));
+    }
     let t0 = Instant::now();
-    let field = engine
-        .compute(&a, &b)
-        .with_context(|| format!("computing flow from {} to {}", args.a.display(), args.b.display()))?;
+    let field = engine.compute(&a, &b).with_context(context)?;
     let elapsed = t0.elapsed();
     if args.json {
-        println!("{}", to_json(field, backend));
+        println!("{}", to_json_timed(field, backend, timing.as_ref()));
     } else {
         print!("{}", summary(field, &cfg.flow, backend, elapsed.as_secs_f64() * 1e3, &args));
+        if let Some(t) = &timing {
+            println!(
+                "{} repeats on {} ({}): min {:.3} ms, median {:.3} ms, p90 {:.3} ms per pair \
+                 (thread CPU time: min {:.3}, median {:.3}, p90 {:.3} ms)",
+                t.n, t.engine, t.adapter, t.min_ms, t.median_ms, t.p90_ms, t.cpu_min_ms, t.cpu_median_ms, t.cpu_p90_ms
+            );
+        }
     }
     if let Some(out) = &args.png {
         draw::save_overlay(&a, field, out).with_context(|| format!("writing {}", out.display()))?;
@@ -132,6 +233,20 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// The CPU the CPU engine runs on, and its SAD kernel: "MODEL (avx2 SAD, one thread)".
+fn cpu_adapter(p: &FlowParams) -> String {
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, m)| m.trim().to_string())
+        })
+        .unwrap_or_else(|| std::env::consts::ARCH.to_string());
+    format!("{model} ({} SAD, one thread)", flow::sad::Kernel::detect(p.block).name())
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {
@@ -288,5 +403,21 @@ mod draw {
             assert_eq!(*img.get_pixel(48, 16), colour(Validity::OutOfFrame));
             assert_eq!(*img.get_pixel(5, 5), Rgb([40, 40, 40]));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Timing;
+
+    #[test]
+    fn timing_statistics() {
+        let wall: Vec<f64> = [7.0, 1.0, 3.0, 10.0, 2.0, 9.0, 4.0, 8.0, 6.0, 5.0].to_vec();
+        let cpu: Vec<f64> = wall.iter().map(|w| w / 2.0).collect();
+        let t = Timing::new(wall, cpu, 1, "cpu", "x".into());
+        assert_eq!((t.n, t.min_ms, t.median_ms, t.p90_ms, t.mean_ms), (10, 1.0, 5.5, 9.0, 5.5));
+        assert_eq!((t.cpu_min_ms, t.cpu_median_ms, t.cpu_p90_ms), (0.5, 2.75, 4.5));
+        let one = Timing::new(vec![2.0], vec![1.0], 0, "gpu", "x".into());
+        assert_eq!((one.min_ms, one.median_ms, one.p90_ms), (2.0, 2.0, 2.0));
     }
 }
