@@ -307,7 +307,7 @@ impl DecodeStats {
 /// Bytes accumulate until a `0x00` delimiter; each complete frame is decoded or dropped and
 /// counted. More than [`MAX_ENCODED`] bytes without a delimiter are discarded up to the next
 /// `0x00`, where the decoder resynchronises. Never panics, whatever the input. It holds one
-/// frame's worth of bytes (about 100 bytes in all), so a firmware can keep it in a static.
+/// frame's worth of bytes (about 150 bytes in all), so a firmware can keep it in a static.
 #[derive(Clone, Debug)]
 pub struct Decoder {
     dir: Direction,

@@ -39,7 +39,13 @@ fn spec_packets() -> Vec<(u8, Packet)> {
 fn vectors() -> Vec<(u8, Packet, Vec<u8>)> {
     let frames = spec_frames();
     let packets = spec_packets();
-    assert_eq!(frames.len(), packets.len(), "docs/protocol.md lists {} vectors, the test knows {}", frames.len(), packets.len());
+    assert_eq!(
+        frames.len(),
+        packets.len(),
+        "docs/protocol.md lists {} vectors, the test knows {}",
+        frames.len(),
+        packets.len()
+    );
     packets.into_iter().zip(frames).map(|((seq, p), f)| (seq, p, f)).collect()
 }
 
