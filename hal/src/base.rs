@@ -1,6 +1,6 @@
 //! The motor-base trait: body-velocity set-points in, odometry and status out.
 //!
-//! Drivers: [`crate::fnp_driver::FnpBase`] (FNP/1, `PROTOCOL.md`) and
+//! Drivers: [`crate::fnp_driver::FnpBase`] (FNP/1, docs/protocol.md) and
 //! [`crate::kobuki::KobukiBase`] (TurtleBot 2). Both run a background tokio task that owns the
 //! port, re-sends the latest command at a fixed rate, reconnects with back-off, and stops the base
 //! when the driver is dropped; the trait methods only exchange data with that task.

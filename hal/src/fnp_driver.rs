@@ -1,4 +1,4 @@
-//! Host driver for FNP/1 bases (`PROTOCOL.md`) over a serial port.
+//! Host driver for FNP/1 bases (docs/protocol.md) over a serial port.
 //!
 //! [`FnpBase::connect`] opens the port, says HELLO (setting the base's watchdog) and waits for
 //! INFO, then hands the port to the shared serial task ([`crate::serial_task`]), which
@@ -39,7 +39,7 @@ pub struct DeviceInfo {
 pub struct FnpConfig {
     pub port: String,
     pub baud: u32,
-    /// How often the current command is repeated (PROTOCOL.md: ≥ 20 Hz).
+    /// How often the current command is repeated (docs/protocol.md: ≥ 20 Hz).
     pub setpoint_rate_hz: f64,
     /// The base's watchdog, sent in HELLO.
     pub watchdog_ms: u16,
@@ -69,7 +69,7 @@ impl FnpConfig {
     fn validate(&self) -> Result<(), SerialBaseError> {
         if !(20.0..=1000.0).contains(&self.setpoint_rate_hz) {
             return Err(SerialBaseError::Config(format!(
-                "setpoint_rate_hz = {} must be in 20..=1000 (PROTOCOL.md asks for at least 20 Hz)",
+                "setpoint_rate_hz = {} must be in 20..=1000 (docs/protocol.md asks for at least 20 Hz)",
                 self.setpoint_rate_hz
             )));
         }
@@ -146,10 +146,18 @@ impl FnpBase {
 impl MotorBase for FnpBase {
     type Error = SerialBaseError;
 
+    /// Refuses a command that does not fit SETPOINT's fields (±32.767 m/s, ±32.767 rad/s, not
+    /// NaN) with [`SerialBaseError::OutOfRange`], and stops the base: saturating it would send
+    /// a different command than the caller's without telling anyone.
     fn set_velocity(&mut self, cmd: BodyVelocity) -> Result<(), SerialBaseError> {
-        let v_mm_s = fnp::to_i16_clamped(cmd.v, 1000.0);
-        let omega_mrad_s = fnp::to_i16_clamped(cmd.omega, 1000.0);
-        self.link.command(Command::Drive { v_mm_s, omega_mrad_s })
+        match fnp::setpoint_fields(cmd.v, cmd.omega) {
+            Ok((v_mm_s, omega_mrad_s)) => self.link.command(Command::Drive { v_mm_s, omega_mrad_s }),
+            Err(e) => {
+                // The stop is recorded even while the link is down; the range error is the one to report.
+                let _ = self.link.stop();
+                Err(e.into())
+            }
+        }
     }
 
     fn stop(&mut self) -> Result<(), SerialBaseError> {
@@ -188,17 +196,19 @@ impl Protocol for Fnp {
 
     fn command_frame(cmd: &Command, seq: u8) -> Vec<u8> {
         match *cmd {
-            Command::Stop => fnp::encode(seq, &Packet::Stop),
-            Command::Drive { v_mm_s, omega_mrad_s } => fnp::encode(seq, &Packet::Setpoint { v_mm_s, omega_mrad_s }),
+            Command::Stop => fnp::encode(seq, &Packet::Stop).to_vec(),
+            Command::Drive { v_mm_s, omega_mrad_s } => {
+                fnp::encode(seq, &Packet::Setpoint { v_mm_s, omega_mrad_s }).to_vec()
+            }
         }
     }
 
     fn stop_frame(seq: u8) -> Vec<u8> {
-        fnp::encode(seq, &Packet::Stop)
+        fnp::encode(seq, &Packet::Stop).to_vec()
     }
 
     fn expired_frame(seq: u8) -> Vec<u8> {
-        fnp::encode(seq, &Packet::Setpoint { v_mm_s: 0, omega_mrad_s: 0 })
+        fnp::encode(seq, &Packet::Setpoint { v_mm_s: 0, omega_mrad_s: 0 }).to_vec()
     }
 
     async fn handshake<S: AsyncRead + AsyncWrite + Unpin + Send>(
@@ -293,7 +303,7 @@ async fn handshake<S: AsyncRead + AsyncWrite + Unpin + Send>(
                         version,
                         wheel_base_m: f64::from(wheel_base_mm) / 1000.0,
                         ticks_per_m,
-                        name,
+                        name: name.to_string(),
                     });
                 }
             });
@@ -309,7 +319,7 @@ async fn handshake<S: AsyncRead + AsyncWrite + Unpin + Send>(
                 port: port.to_string(),
                 timeout_ms: cfg.handshake_timeout.as_millis() as u64,
                 baud: cfg.baud,
-                protocol: "FNP/1 (PROTOCOL.md)",
+                protocol: "FNP/1 (docs/protocol.md)",
             });
         }
     }
@@ -353,7 +363,7 @@ mod tests {
                     if n == 0 { return; }
                     for f in dec.feed_collect(&buf[..n]) {
                         if let Packet::Hello { .. } = f.packet {
-                            let info = Packet::Info { version: 1, wheel_base_mm: 330, ticks_per_m: 10000, name: "fake".into() };
+                            let info = Packet::Info { version: 1, wheel_base_mm: 330, ticks_per_m: 10000, name: fnp::ascii_name("fake") };
                             if s.write_all(&fnp::encode(seq, &info)).await.is_err() { return; }
                             seq = seq.wrapping_add(1);
                         }
@@ -390,20 +400,20 @@ mod tests {
     }
 
     #[tokio::test(start_paused = true)]
-    async fn setpoints_repeat_at_the_configured_rate_and_clamp() {
+    async fn setpoints_repeat_at_the_configured_rate() {
         let (conn, log) = pipes(1, None);
         let mut cfg = FnpConfig::new("pipe");
         cfg.command_timeout = None;
         let mut base = FnpBase::connect_with(cfg, conn).await.unwrap();
         assert_eq!(base.info().name, "fake");
         assert_eq!(base.info().wheel_base_m, 0.33);
-        base.set_velocity(BodyVelocity::new(100.0, -0.15)).unwrap();
+        base.set_velocity(BodyVelocity::new(0.3, -0.15)).unwrap();
         let t0 = Instant::now();
         tokio::time::sleep(Duration::from_secs(2)).await;
         let sent = setpoints_between(&log.lock().unwrap(), t0, t0 + Duration::from_secs(2));
         // 25 Hz for 2 s: 50 repeats, plus the immediate send of the new command.
         assert!((50..=52).contains(&sent.len()), "{} set-points in 2 s", sent.len());
-        assert!(sent.iter().all(|p| *p == Packet::Setpoint { v_mm_s: i16::MAX, omega_mrad_s: -150 }));
+        assert!(sent.iter().all(|p| *p == Packet::Setpoint { v_mm_s: 300, omega_mrad_s: -150 }));
         // Odometry flowed meanwhile.
         let mut odoms = 0;
         while let Ok(Some(ev)) = base.next_event(Duration::from_millis(1)).await {
@@ -412,6 +422,36 @@ mod tests {
         assert!(odoms >= 90, "{odoms} odometry events");
         base.close().await;
         assert_eq!(log.lock().unwrap().last().unwrap().1, Packet::Stop);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn out_of_range_setpoint_is_refused_and_stops_the_base() {
+        let (conn, log) = pipes(1, None);
+        let mut cfg = FnpConfig::new("pipe");
+        cfg.command_timeout = None;
+        let mut base = FnpBase::connect_with(cfg, conn).await.unwrap();
+        base.set_velocity(BodyVelocity::new(0.3, 0.0)).unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        let err = base.set_velocity(BodyVelocity::new(100.0, 0.0)).unwrap_err();
+        assert_eq!(err.kind(), ErrorKind::Unsupported);
+        assert!(
+            err.to_string().starts_with("linear set-point 100 m/s does not fit FNP/1's ±32.767 m/s field"),
+            "{err}"
+        );
+        let err = base.set_velocity(BodyVelocity::new(0.1, f64::NAN)).unwrap_err();
+        assert!(err.to_string().starts_with("angular set-point NaN rad/s"), "{err}");
+        let t0 = Instant::now();
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        // Nothing saturated went out: after the refusal the base hears STOP, repeated.
+        let after: Vec<Packet> = log.lock().unwrap().iter().filter(|(t, _)| *t >= t0).map(|(_, p)| p.clone()).collect();
+        assert!(after.len() >= 10 && after.iter().all(|p| *p == Packet::Stop), "{after:?}");
+        // The next command that fits drives again.
+        base.set_velocity(BodyVelocity::new(-32.768, 32.767)).unwrap();
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        assert_eq!(
+            log.lock().unwrap().last().unwrap().1,
+            Packet::Setpoint { v_mm_s: i16::MIN, omega_mrad_s: i16::MAX }
+        );
     }
 
     #[tokio::test(start_paused = true)]

@@ -17,7 +17,7 @@
 //! | [`yuyv`] | YUYV 4:2:2 → luma |
 //! | [`base`] | the [`MotorBase`] trait, [`BaseEvent`], [`BaseStatus`], [`LinkStats`] |
 //! | [`serial_task`] | the serial skeleton both base drivers share: opening the port, the command task, expiry, reconnect/back-off, link counters, device-clock mapping |
-//! | [`fnp`] | FNP/1 codec (`PROTOCOL.md`): COBS, CRC-16, packets, incremental decoder |
+//! | [`fnp`] | the FNP/1 codec (docs/protocol.md), re-exported from the no_std `flownav-fnp` crate, and the host's unit conversions |
 //! | [`fnp_driver`] | the FNP/1 host driver: HELLO/INFO handshake, set-points out, odometry and status in |
 //! | [`kobuki`] | the Kobuki (TurtleBot 2) protocol and its driver |
 

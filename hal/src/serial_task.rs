@@ -51,6 +51,9 @@ pub enum SerialBaseError {
     Closed { port: String },
     #[error("base configuration: {0}")]
     Config(String),
+    /// A command that the protocol's fields cannot carry; the driver stopped the base instead.
+    #[error(transparent)]
+    OutOfRange(#[from] crate::fnp::OutOfRange),
 }
 
 impl Error for SerialBaseError {
@@ -59,7 +62,9 @@ impl Error for SerialBaseError {
             SerialBaseError::NoSuchPort { .. } | SerialBaseError::Disconnected { .. } => ErrorKind::Disconnected,
             SerialBaseError::Closed { .. } => ErrorKind::Disconnected,
             SerialBaseError::NoAnswer { .. } => ErrorKind::Timeout,
-            SerialBaseError::Incompatible { .. } | SerialBaseError::Config(_) => ErrorKind::Unsupported,
+            SerialBaseError::Incompatible { .. } | SerialBaseError::Config(_) | SerialBaseError::OutOfRange(_) => {
+                ErrorKind::Unsupported
+            }
             SerialBaseError::PermissionDenied { .. } | SerialBaseError::Open { .. } => ErrorKind::Other,
         }
     }

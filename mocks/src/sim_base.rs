@@ -1,4 +1,4 @@
-//! The simulated FNP/1 base (`PROTOCOL.md`), and the pty server that runs any simulated device.
+//! The simulated FNP/1 base (docs/protocol.md), and the pty server that runs any simulated device.
 //!
 //! [`SimBase`] is the firmware, as a pure state machine in simulated time: feed it the bytes the
 //! host sent ([`SimDevice::receive`]) and step it ([`SimDevice::advance`]); it answers HELLO with
@@ -553,7 +553,7 @@ mod tests {
         let mut b = SimBase::new(SimBaseConfig { name: "sim".into(), ..quiet() });
         let mut out = Vec::new();
         b.receive(&fnp::encode(1, &Packet::Hello { watchdog_ms: 400 }), &mut out);
-        // The PROTOCOL.md INFO vector, byte for byte (wheel base 0.330 m, 10000 ticks/m, "sim", seq 0).
+        // The docs/protocol.md INFO vector, byte for byte (wheel base 0.330 m, 10000 ticks/m, "sim", seq 0).
         assert_eq!(
             out,
             vec![0x02, 0x83, 0x06, 0x01, 0x4a, 0x01, 0x10, 0x27, 0x01, 0x06, 0x73, 0x69, 0x6d, 0xc3, 0xf4, 0x00]

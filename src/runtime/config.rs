@@ -14,7 +14,7 @@ use std::str::FromStr;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BaseKind {
-    /// flownav's own protocol (PROTOCOL.md), driver `hal::fnp_driver::FnpBase`.
+    /// flownav's own protocol (docs/protocol.md), driver `hal::fnp_driver::FnpBase`.
     #[default]
     Fnp,
     /// TurtleBot 2 / Kobuki, driver `hal::kobuki::KobukiBase`.
@@ -72,7 +72,7 @@ impl BaseConfig {
             return bad("baud", "must be a positive line rate, e.g. 115200");
         }
         if !(self.setpoint_rate_hz.is_finite() && (20.0..=1000.0).contains(&self.setpoint_rate_hz)) {
-            return bad("setpoint_rate_hz", "must be in 20..=1000 Hz (PROTOCOL.md asks for at least 20 Hz)");
+            return bad("setpoint_rate_hz", "must be in 20..=1000 Hz (docs/protocol.md asks for at least 20 Hz)");
         }
         if !(20..=5000).contains(&self.watchdog_ms) {
             return bad("watchdog_ms", "must be in 20..=5000 ms");
