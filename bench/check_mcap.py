@@ -23,7 +23,7 @@ import json
 import sys
 from collections import defaultdict
 
-from mcap.reader import make_reader
+from mcap.reader import NonSeekingReader, make_reader
 
 # topic -> accepted schema names (the table in docs/logging.md)
 TOPICS = {
@@ -59,10 +59,17 @@ def main() -> int:
     last_seq = {}
     channels = {}
     with open(args.file, "rb") as f:
-        reader = make_reader(f)
-        header = reader.get_header()
+        # A truncated file has no footer to seek to: read it front to back.
+        # (a non-seeking reader answers one query: the header comes from a reader of its own).
+        if args.truncated:
+            with open(args.file, "rb") as g:
+                header = NonSeekingReader(g).get_header()
+            reader = NonSeekingReader(f)
+        else:
+            reader = make_reader(f)
+            header = reader.get_header()
         try:
-            summary = reader.get_summary()
+            summary = None if args.truncated else reader.get_summary()
         except Exception as e:  # a truncated file: the official reader gives up here
             summary = None
             if not args.truncated:

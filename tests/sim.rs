@@ -257,7 +257,8 @@ fn parallel_seeds_print_the_same_summaries_in_seed_order() {
             .output()
             .expect("flownav runs");
         // Exit status 3 exactly when a run did not reach or touched something (3 s is short).
-        let agg: serde_json::Value = serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().last().unwrap()).unwrap();
+        let agg: serde_json::Value =
+            serde_json::from_str(String::from_utf8_lossy(&out.stdout).lines().last().unwrap()).unwrap();
         let failed = !agg["failed_seeds"].as_array().unwrap().is_empty();
         assert_eq!(out.status.code(), Some(if failed { 3 } else { 0 }), "{}", String::from_utf8_lossy(&out.stderr));
         // the lines, less what depends on the wall clock

@@ -190,19 +190,23 @@ async fn a_sim_killed_while_logging_leaves_a_readable_log() {
     let dir = tempfile::tempdir().unwrap();
     let logs = dir.path().join("logs");
     let mut child = flownav()
-        .args(["sim", "--quiet", "--max-time", "600", "--size", "160x90", "--log"])
+        .args(["sim", "--quiet", "--max-time", "600", "--log"])
         .arg(&logs)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
     let log_file = || {
-        std::fs::read_dir(&logs).ok()?.filter_map(Result::ok).map(|e| e.path()).find(|p| {
-            p.extension().is_some_and(|x| x == "mcap") && p.metadata().is_ok_and(|m| m.len() > 200_000)
-        })
+        let dir = std::fs::read_dir(&logs).ok()?;
+        dir.filter_map(Result::ok).map(|e| e.path()).find(|p| p.extension().is_some_and(|x| x == "mcap"))
     };
-    // More than a chunk's worth on disk (the writer also flushes at least every second).
-    wait_for(&mut child, "the log to grow past 200 kB", || log_file().is_some()).await;
+    // Kill once the file on disk holds complete chunks with set-points (the writer finishes a
+    // chunk at least every second), so there is something to recover.
+    let flushed = || {
+        let info = log_file().and_then(|p| flownav::logging::LogInfo::read(&p).ok());
+        info.is_some_and(|i| i.topics.iter().any(|t| t.topic == "/control/setpoint" && t.count > 0))
+    };
+    wait_for(&mut child, "complete chunks in the log", flushed).await;
     child.kill().unwrap(); // SIGKILL: no destructor, no footer
     let status = wait_exit(&mut child).await;
     assert_eq!(status.code(), None, "killed by a signal");
@@ -213,7 +217,12 @@ async fn a_sim_killed_while_logging_leaves_a_readable_log() {
     assert_eq!(info["complete"], false, "{info}");
     assert!(info["truncation"].is_string(), "why it stopped is reported: {info}");
     let count = |topic: &str| {
-        info["topics"].as_array().unwrap().iter().find(|t| t["topic"] == topic).map_or(0, |t| t["count"].as_u64().unwrap())
+        info["topics"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["topic"] == topic)
+            .map_or(0, |t| t["count"].as_u64().unwrap())
     };
     assert!(count("/camera/image") > 0 && count("/control/setpoint") > 0, "{info}");
 }

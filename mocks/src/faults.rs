@@ -192,7 +192,9 @@ impl AlarmWindow {
 
 /// A bad `--alarm` specification.
 #[derive(Debug, thiserror::Error)]
-#[error("--alarm {spec}: {problem} (expected KIND@START+FOR, e.g. estop@2+1.5 or bumper@500ms+2s; KIND is one of bumper, estop, cliff, wheel-drop, motor-fault; times are seconds of the base's clock, or with ms/s)")]
+#[error(
+    "--alarm {spec}: {problem} (expected KIND@START+FOR, e.g. estop@2+1.5 or bumper@500ms+2s; KIND is one of bumper, estop, cliff, wheel-drop, motor-fault; times are seconds of the base's clock, or with ms/s)"
+)]
 pub struct AlarmSpecError {
     spec: String,
     problem: String,
@@ -317,10 +319,20 @@ mod tests {
     #[test]
     fn alarm_specs_parse_and_reject_nonsense() {
         let w: AlarmWindow = "estop@2.0+1.5".parse().unwrap();
-        assert_eq!(w, AlarmWindow { kind: AlarmKind::Estop, start: Duration::from_secs(2), duration: Duration::from_millis(1500) });
+        assert_eq!(
+            w,
+            AlarmWindow {
+                kind: AlarmKind::Estop,
+                start: Duration::from_secs(2),
+                duration: Duration::from_millis(1500)
+            }
+        );
         assert!(!w.active(1.999) && w.active(2.0) && w.active(3.499) && !w.active(3.5));
         let w: AlarmWindow = "wheel-drop@500ms+2s".parse().unwrap();
-        assert_eq!((w.kind, w.start, w.duration), (AlarmKind::WheelDrop, Duration::from_millis(500), Duration::from_secs(2)));
+        assert_eq!(
+            (w.kind, w.start, w.duration),
+            (AlarmKind::WheelDrop, Duration::from_millis(500), Duration::from_secs(2))
+        );
         for k in AlarmKind::ALL {
             assert_eq!(format!("{}@0+1", k.name()).parse::<AlarmWindow>().unwrap().kind, k);
         }

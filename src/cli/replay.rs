@@ -37,9 +37,9 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     // The log carries its configuration and calibration; --config replaces the configuration
     // (what-if replays), --flow-backend picks the engine (default cpu, the bit-exact reference).
     let config = match &common.config {
-        Some(path) => Some(
-            Config::load(path).map_err(|e| unreadable(format!("loading --config {}: {e:#}", path.display())))?,
-        ),
+        Some(path) => {
+            Some(Config::load(path).map_err(|e| unreadable(format!("loading --config {}: {e:#}", path.display())))?)
+        }
         None => None,
     };
     let options = ReplayOptions { backend: common.flow_backend, config };

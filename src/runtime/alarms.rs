@@ -89,7 +89,11 @@ impl Alarms {
             if s.bumper {
                 stop_now = true;
                 self.stops += 1;
-                self.note(now_ns, LogLevel::Warning, "base alarm: bumper pressed: robot stopped, forward motion refused while pressed".into());
+                self.note(
+                    now_ns,
+                    LogLevel::Warning,
+                    "base alarm: bumper pressed: robot stopped, forward motion refused while pressed".into(),
+                );
             } else {
                 self.note(now_ns, LogLevel::Info, "bumper released: forward motion allowed".into());
             }
