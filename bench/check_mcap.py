@@ -9,7 +9,10 @@ Reads the file with a reader flownav did not write and checks:
   - per-channel time order: log_time non-decreasing, publish_time == log_time, sequence increasing;
   - every message is a JSON object; images decode (base64) to the advertised size.
 
-Usage:  python3 bench/check_mcap.py FILE [--expect /camera/image=90 ...] [--require-all-topics]
+With --truncated (a log whose writer was killed): no summary is expected; the messages are read
+up to the last complete chunk, the cut after it is reported, and at least one message must be read.
+
+Usage:  python3 bench/check_mcap.py FILE [--expect /camera/image=90 ...] [--require-all-topics] [--truncated]
 Setup:  python3 -m venv .venv-mcap && .venv-mcap/bin/pip install 'mcap==1.*'
 Exit status 0 when every check passes; each failure is printed on its own line.
 """
@@ -20,7 +23,7 @@ import json
 import sys
 from collections import defaultdict
 
-from mcap.reader import make_reader
+from mcap.reader import NonSeekingReader, make_reader
 
 # topic -> accepted schema names (the table in docs/logging.md)
 TOPICS = {
@@ -47,6 +50,7 @@ def main() -> int:
     ap.add_argument("file")
     ap.add_argument("--expect", action="append", default=[], metavar="TOPIC=N", help="expected message count")
     ap.add_argument("--require-all-topics", action="store_true", help="every flownav topic must be present")
+    ap.add_argument("--truncated", action="store_true", help="a killed writer's file: no summary, read to the cut")
     args = ap.parse_args()
     errors = []
 
@@ -55,20 +59,36 @@ def main() -> int:
     last_seq = {}
     channels = {}
     with open(args.file, "rb") as f:
-        reader = make_reader(f)
-        header = reader.get_header()
+        # A truncated file has no footer to seek to: read it front to back.
+        # (a non-seeking reader answers one query: the header comes from a reader of its own).
+        if args.truncated:
+            with open(args.file, "rb") as g:
+                header = NonSeekingReader(g).get_header()
+            reader = NonSeekingReader(f)
+        else:
+            reader = make_reader(f)
+            header = reader.get_header()
         try:
-            summary = reader.get_summary()
+            summary = None if args.truncated else reader.get_summary()
         except Exception as e:  # a truncated file: the official reader gives up here
             summary = None
-            errors.append(f"cannot read the summary: {type(e).__name__}: {e}")
-        if summary is None and not errors:
+            if not args.truncated:
+                errors.append(f"cannot read the summary: {type(e).__name__}: {e}")
+        if summary is None and not errors and not args.truncated:
             errors.append("no summary section (file not closed cleanly?)")
+        if summary is not None and args.truncated:
+            errors.append("--truncated: the file has a summary (it was closed cleanly)")
         try:
             for schema, channel, message in reader.iter_messages(log_time_order=False):
                 check_message(schema, channel, message, counts, last_time, last_seq, channels, errors)
         except Exception as e:
-            errors.append(f"reading stopped after {sum(counts.values())} messages: {type(e).__name__}: {e}")
+            cut = f"reading stopped after {sum(counts.values())} messages: {type(e).__name__}: {e}"
+            if args.truncated:
+                print(f"cut (expected): {cut}")
+            else:
+                errors.append(cut)
+        if args.truncated and not counts:
+            errors.append("--truncated: no complete message before the cut")
 
     report(args, header, summary, counts, channels, errors)
     return 0 if not errors else 1

@@ -7,6 +7,7 @@
 #   bench/sim_seeds.sh            # seeds 0..20
 #   SEEDS=0..5 bench/sim_seeds.sh --noise 0
 #   SEEDS=0..100 JOBS=8 bench/sim_seeds.sh   # 8 missions at a time (default: one per CPU core)
+# Exit status 3 when a run did not reach its goal or touched something (README, "Exit codes").
 set -eu
 cd "$(dirname "$0")/.."
 cargo build --release --quiet

@@ -132,13 +132,30 @@ fn replay_lib(path: &Path) -> (ReplaySummary, Vec<(u64, Check, bool)>) {
 }
 
 fn replay_cli(path: &Path) -> (bool, String, String) {
+    let (code, stdout, stderr) = replay_cli_code(path);
+    (code == Some(0), stdout, stderr)
+}
+
+fn replay_cli_code(path: &Path) -> (Option<i32>, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_flownav")).arg("replay").arg(path).arg("--check").output().unwrap();
-    (out.status.success(), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
+    (out.status.code(), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
 }
 
 /// Steps: frames 1..=STALL_AFTER pair with their predecessor; STALL_AFTER+1 only primes again.
 fn expected_steps() -> u64 {
     (FRAMES - 1) - 1
+}
+
+#[test]
+fn replay_check_exits_2_when_it_cannot_read_the_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let junk = dir.path().join("junk.mcap");
+    std::fs::write(&junk, b"not an MCAP file at all").unwrap();
+    for path in [junk, dir.path().join("missing.mcap")] {
+        let (code, _, stderr) = replay_cli_code(&path);
+        assert_eq!(code, Some(2), "{}: {stderr}", path.display());
+        assert!(stderr.contains(&*path.to_string_lossy()), "the error names the file: {stderr}");
+    }
 }
 
 #[test]
@@ -179,9 +196,9 @@ fn a_recorded_run_replays_bit_for_bit_and_a_tampered_one_fails() {
     assert_eq!(first.seq, seq);
     assert_eq!(first.diffs.len(), 1, "{:?}", first.diffs);
     assert_eq!((first.diffs[0].topic.as_str(), first.diffs[0].field.as_str()), ("/control/setpoint", "omega"));
-    let (ok, _, stderr) = replay_cli(&tampered);
+    let (code, _, stderr) = replay_cli_code(&tampered);
     eprint!("{stderr}");
-    assert!(!ok, "replay --check passed a tampered log");
+    assert_eq!(code, Some(1), "replay --check exits 1 on a mismatch");
     assert!(stderr.contains("1 of 10 checked steps differ") && stderr.contains("omega"), "{stderr}");
 }
 

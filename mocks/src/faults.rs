@@ -4,6 +4,9 @@
 //! bytes, get bytes corrupted (one random bit flipped) or be held back for a while; and the link
 //! may go down now and then (the server closes the pty and opens a new one). Every fault is
 //! counted, so tests can check that the driver survived exactly what was done to it.
+//!
+//! An [`AlarmWindow`] raises one of the base's own alarms (bumper, e-stop, cliff, wheel drop,
+//! motor fault) for a while in the base's simulated time (`sim-base --alarm estop@2+1.5`).
 
 use std::str::FromStr;
 use std::time::Duration;
@@ -140,6 +143,87 @@ impl FromStr for FaultConfig {
     }
 }
 
+/// One of the alarms a base reports in its status.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum AlarmKind {
+    Bumper,
+    Estop,
+    Cliff,
+    WheelDrop,
+    MotorFault,
+}
+
+impl AlarmKind {
+    pub const ALL: [AlarmKind; 5] =
+        [AlarmKind::Bumper, AlarmKind::Estop, AlarmKind::Cliff, AlarmKind::WheelDrop, AlarmKind::MotorFault];
+
+    /// The name in an `--alarm` spec.
+    pub fn name(self) -> &'static str {
+        match self {
+            AlarmKind::Bumper => "bumper",
+            AlarmKind::Estop => "estop",
+            AlarmKind::Cliff => "cliff",
+            AlarmKind::WheelDrop => "wheel-drop",
+            AlarmKind::MotorFault => "motor-fault",
+        }
+    }
+}
+
+/// An alarm raised from `start` for `duration` of the base's simulated time.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AlarmWindow {
+    pub kind: AlarmKind,
+    pub start: Duration,
+    pub duration: Duration,
+}
+
+impl AlarmWindow {
+    /// Whether the alarm is raised at `t_s` (simulated seconds since the base started).
+    pub fn active(&self, t_s: f64) -> bool {
+        let start = self.start.as_secs_f64();
+        t_s >= start && t_s < start + self.duration.as_secs_f64()
+    }
+
+    /// Whether any window of `kind` in `windows` is raised at `t_s`.
+    pub fn any(windows: &[AlarmWindow], kind: AlarmKind, t_s: f64) -> bool {
+        windows.iter().any(|w| w.kind == kind && w.active(t_s))
+    }
+}
+
+/// A bad `--alarm` specification.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "--alarm {spec}: {problem} (expected KIND@START+FOR, e.g. estop@2+1.5 or bumper@500ms+2s; KIND is one of bumper, estop, cliff, wheel-drop, motor-fault; times are seconds of the base's clock, or with ms/s)"
+)]
+pub struct AlarmSpecError {
+    spec: String,
+    problem: String,
+}
+
+impl FromStr for AlarmWindow {
+    type Err = AlarmSpecError;
+
+    /// `KIND@START+FOR`: `estop@2+1.5` raises the e-stop 2 s after the base started, for 1.5 s.
+    fn from_str(spec: &str) -> Result<Self, Self::Err> {
+        let bad = |problem: String| AlarmSpecError { spec: spec.into(), problem };
+        let (kind, times) = spec.trim().split_once('@').ok_or_else(|| bad("no '@' before the start time".into()))?;
+        let kind = AlarmKind::ALL
+            .into_iter()
+            .find(|k| k.name() == kind)
+            .ok_or_else(|| bad(format!("unknown alarm '{kind}'")))?;
+        let (start, duration) = times.split_once('+').ok_or_else(|| bad("no '+' before the duration".into()))?;
+        let time = |s: &str| {
+            let with_unit = if s.ends_with('s') { s.to_string() } else { format!("{s}s") };
+            parse_duration(&with_unit).map_err(|e| bad(e.0))
+        };
+        let (start, duration) = (time(start)?, time(duration)?);
+        if duration.is_zero() {
+            return Err(bad("the duration must be more than 0".into()));
+        }
+        Ok(Self { kind, start, duration })
+    }
+}
+
 /// Counts of every fault injected.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct FaultStats {
@@ -230,6 +314,34 @@ mod tests {
         assert!("drop=2".parse::<FaultConfig>().unwrap_err().to_string().contains("drop=2"));
         assert!("bogus=1".parse::<FaultConfig>().unwrap_err().to_string().contains("unknown fault 'bogus'"));
         assert!("delay=0.1:5min".parse::<FaultConfig>().is_err());
+    }
+
+    #[test]
+    fn alarm_specs_parse_and_reject_nonsense() {
+        let w: AlarmWindow = "estop@2.0+1.5".parse().unwrap();
+        assert_eq!(
+            w,
+            AlarmWindow {
+                kind: AlarmKind::Estop,
+                start: Duration::from_secs(2),
+                duration: Duration::from_millis(1500)
+            }
+        );
+        assert!(!w.active(1.999) && w.active(2.0) && w.active(3.499) && !w.active(3.5));
+        let w: AlarmWindow = "wheel-drop@500ms+2s".parse().unwrap();
+        assert_eq!(
+            (w.kind, w.start, w.duration),
+            (AlarmKind::WheelDrop, Duration::from_millis(500), Duration::from_secs(2))
+        );
+        for k in AlarmKind::ALL {
+            assert_eq!(format!("{}@0+1", k.name()).parse::<AlarmWindow>().unwrap().kind, k);
+        }
+        let err = |s: &str| s.parse::<AlarmWindow>().unwrap_err().to_string();
+        assert!(err("lava@1+1").contains("unknown alarm 'lava'"), "{}", err("lava@1+1"));
+        assert!(err("estop+1").contains("no '@'"));
+        assert!(err("estop@1").contains("no '+'"));
+        assert!(err("estop@x+1").contains("bad duration"));
+        assert!(err("estop@1+0").contains("more than 0"));
     }
 
     #[test]

@@ -4,7 +4,10 @@
 //! host sent ([`SimDevice::receive`]) and step it ([`SimDevice::advance`]); it answers HELLO with
 //! INFO, drives a [`DiffDrive`], sends ODOM every 20 ms (50 Hz) and STATUS every 100 ms (10 Hz),
 //! and stops the motors when no SETPOINT or STOP arrived for the watchdog time (default 250 ms,
-//! set by HELLO), setting STATUS bit 2 until the next SETPOINT.
+//! set by HELLO), setting STATUS bit 2 until the next SETPOINT. The bumper (bit 0) is pressed
+//! while the drive train touches something; [`SimBaseConfig::alarms`] raise the bumper, the
+//! e-stop (bit 1) or a motor fault (bit 3) for a while, and like firmware the base cuts its
+//! motors during an e-stop or a motor fault, whatever the host commands.
 //!
 //! [`SimServer`] puts a [`SimDevice`] on a pseudo-terminal (see [`crate::pty`]) with optional
 //! [`crate::faults`] on both directions. Its clock is either
@@ -17,7 +20,7 @@
 //! The true pose and all counters are readable at any time ([`SimServer::pose`],
 //! [`SimServer::with_device`]).
 
-use crate::faults::{FaultConfig, FaultInjector, FaultStats};
+use crate::faults::{AlarmKind, AlarmWindow, FaultConfig, FaultInjector, FaultStats};
 use crate::kinematics::{CollisionFn, DiffDrive, DiffDriveParams, Pose};
 use crate::pty::Pty;
 use hal::BodyVelocity;
@@ -55,6 +58,23 @@ pub struct SimBaseConfig {
     pub clock_start_us: u32,
     /// Longest kinematics step inside one `advance`.
     pub max_substep_s: f64,
+    /// Alarms raised on schedule (bumper, estop, motor-fault; FNP/1 has no cliff or wheel-drop
+    /// flag, see [`SimBaseConfig::check_alarms`]).
+    pub alarms: Vec<AlarmWindow>,
+}
+
+impl SimBaseConfig {
+    /// Refuses alarms FNP/1 cannot report.
+    pub fn check_alarms(&self) -> Result<(), String> {
+        match self.alarms.iter().find(|w| matches!(w.kind, AlarmKind::Cliff | AlarmKind::WheelDrop)) {
+            Some(w) => Err(format!(
+                "--alarm {}: FNP/1 STATUS has no {} flag (bumper, estop and motor-fault only; use --kobuki for cliff and wheel-drop)",
+                w.kind.name(),
+                w.kind.name()
+            )),
+            None => Ok(()),
+        }
+    }
 }
 
 impl Default for SimBaseConfig {
@@ -68,6 +88,7 @@ impl Default for SimBaseConfig {
             battery_mv: 12_600,
             clock_start_us: 0,
             max_substep_s: 0.005,
+            alarms: Vec::new(),
         }
     }
 }
@@ -148,11 +169,21 @@ impl SimBase {
         SimBaseCounters { decode: self.decoder.stats(), ..self.counters }
     }
 
+    fn alarm(&self, kind: AlarmKind) -> bool {
+        AlarmWindow::any(&self.cfg.alarms, kind, self.t_s)
+    }
+
     /// STATUS flags now.
     pub fn flags(&self) -> u8 {
         let mut f = 0;
-        if self.drive.bumper() {
+        if self.drive.bumper() || self.alarm(AlarmKind::Bumper) {
             f |= fnp::flags::BUMPER;
+        }
+        if self.alarm(AlarmKind::Estop) {
+            f |= fnp::flags::ESTOP;
+        }
+        if self.alarm(AlarmKind::MotorFault) {
+            f |= fnp::flags::MOTOR_FAULT;
         }
         if self.watchdog_stopped {
             f |= fnp::flags::WATCHDOG_STOP;
@@ -252,9 +283,19 @@ impl SimDevice for SimBase {
             if !self.watchdog_stopped && wd_at > self.t_s {
                 next = next.min(wd_at);
             }
+            // An alarm window's edges are events too: the flags and the motor cut-off change there.
+            for w in &self.cfg.alarms {
+                for edge in [w.start.as_secs_f64(), (w.start + w.duration).as_secs_f64()] {
+                    if edge > self.t_s {
+                        next = next.min(edge);
+                    }
+                }
+            }
             let h = next - self.t_s;
             if h > 0.0 {
-                self.drive.step(self.cmd, h);
+                // E-stop and motor fault: the firmware cuts the motors.
+                let cut = self.alarm(AlarmKind::Estop) || self.alarm(AlarmKind::MotorFault);
+                self.drive.step(if cut { BodyVelocity::ZERO } else { self.cmd }, h);
                 self.t_s = next;
             }
             if !self.watchdog_stopped && self.t_s >= wd_at - 1e-12 {
@@ -654,6 +695,39 @@ mod tests {
         assert_eq!(b.flags() & fnp::flags::BUMPER, fnp::flags::BUMPER);
         assert_eq!(b.drive().collisions(), 1);
         assert!(b.pose().x <= 0.05);
+    }
+
+    #[test]
+    fn scheduled_alarms_set_their_flags_and_estop_cuts_the_motors() {
+        // Edges off the 100 ms STATUS grid, so which STATUS carries a flag is not a rounding matter.
+        let alarms = ["estop@0.25+0.4", "motor-fault@0.95+0.1", "bumper@1.45+0.1"].map(|s| s.parse().unwrap()).to_vec();
+        let mut b = SimBase::new(SimBaseConfig { alarms, ..quiet() });
+        assert!(b.cfg.check_alarms().is_ok());
+        let mut out = Vec::new();
+        let mut flags_at = Vec::new();
+        for i in 0..200u32 {
+            b.receive(&fnp::encode(i as u8, &Packet::Setpoint { v_mm_s: 200, omega_mrad_s: 0 }), &mut out);
+            out.clear();
+            b.advance(0.01, &mut out);
+            for f in frames(&out) {
+                if let Packet::Status { flags, .. } = f.packet {
+                    flags_at.push((b.time_s(), flags));
+                }
+            }
+            // Cut at 0.25 s, the wheels ramp down from 0.2 m/s at 1 m/s²: still by 0.45 s.
+            if (0.5..0.65).contains(&b.time_s()) {
+                assert_eq!(b.drive().velocity().v, 0.0, "no motion during the e-stop at {}", b.time_s());
+            }
+        }
+        let set = |flag: u8| -> Vec<f64> {
+            flags_at.iter().filter(|(_, f)| f & flag != 0).map(|(t, _)| (t * 10.0).round() / 10.0).collect()
+        };
+        assert_eq!(set(fnp::flags::ESTOP), vec![0.3, 0.4, 0.5, 0.6]);
+        assert_eq!(set(fnp::flags::MOTOR_FAULT), vec![1.0]);
+        assert_eq!(set(fnp::flags::BUMPER), vec![1.5]);
+        assert!(b.drive().velocity().v > 0.19, "driving again after the alarms");
+        let cliff = SimBaseConfig { alarms: vec!["cliff@0+1".parse().unwrap()], ..quiet() };
+        assert!(cliff.check_alarms().unwrap_err().contains("no cliff flag"));
     }
 
     #[test]

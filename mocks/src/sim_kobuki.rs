@@ -5,8 +5,11 @@
 //! until told otherwise, which is what the host-side watchdog of `hal::kobuki` is tested against.
 //! Its drive train uses the Kobuki's geometry (wheel base 0.230 m, 11724.41 ticks/m); encoders
 //! and the millisecond timestamp are 16-bit and wrap as on the robot. Cliff and wheel-drop
-//! sensors can be set by a test; the bumper comes from the collision hook.
+//! sensors can be set by a test or raised on schedule ([`SimKobukiConfig::alarms`]: bumper,
+//! cliff, wheel-drop, motor-fault as over-current; the Kobuki has no e-stop); the bumper also
+//! comes from the collision hook.
 
+use crate::faults::{AlarmKind, AlarmWindow};
 use crate::kinematics::{DiffDrive, DiffDriveParams, DriveLimits, Pose};
 use crate::odometry_error::OdometryError;
 use crate::sim_base::SimDevice;
@@ -24,6 +27,18 @@ pub struct SimKobukiConfig {
     pub clock_start_ms: u16,
     /// Encoder counts at start (set near 65535 to exercise the wrap).
     pub encoder_start: u16,
+    /// Alarms raised on schedule; see [`SimKobukiConfig::check_alarms`].
+    pub alarms: Vec<AlarmWindow>,
+}
+
+impl SimKobukiConfig {
+    /// Refuses the alarm the Kobuki cannot report (it has no e-stop).
+    pub fn check_alarms(&self) -> Result<(), String> {
+        if self.alarms.iter().any(|w| w.kind == AlarmKind::Estop) {
+            return Err("--alarm estop: the Kobuki's sensor data has no e-stop (bumper, cliff, wheel-drop and motor-fault only)".into());
+        }
+        Ok(())
+    }
 }
 
 impl Default for SimKobukiConfig {
@@ -40,6 +55,7 @@ impl Default for SimKobukiConfig {
             battery_dv: 165,
             clock_start_ms: 0,
             encoder_start: 0,
+            alarms: Vec::new(),
         }
     }
 }
@@ -92,15 +108,26 @@ impl SimKobuki {
         self.t_s
     }
 
+    fn alarm(&self, kind: AlarmKind) -> bool {
+        AlarmWindow::any(&self.cfg.alarms, kind, self.t_s)
+    }
+
+    /// The cliff and wheel-drop bits now: those a test set, or a scheduled alarm's.
+    fn cliff_bits(&self) -> (u8, u8) {
+        let cliff = if self.alarm(AlarmKind::Cliff) { kobuki::mask::CLIFF_CENTRE } else { self.cliff };
+        let drop = if self.alarm(AlarmKind::WheelDrop) { kobuki::mask::WHEEL_DROP_LEFT } else { self.wheel_drop };
+        (cliff, drop)
+    }
+
     fn feedback(&mut self, out: &mut Vec<u8>) {
         let (l, r) = self.drive.ticks();
         let pwm = |v: f64| (v / self.cfg.drive.limits.max_v * 100.0).clamp(-100.0, 100.0) as i8;
         let half = 0.5 * self.cfg.drive.wheel_base_m * self.drive.velocity().omega;
         let cs = CoreSensors {
             timestamp_ms: self.cfg.clock_start_ms.wrapping_add((self.t_s * 1000.0).round() as u64 as u16),
-            bumper: if self.drive.bumper() { kobuki::mask::BUMPER_CENTRE } else { 0 },
-            wheel_drop: self.wheel_drop,
-            cliff: self.cliff,
+            bumper: if self.drive.bumper() || self.alarm(AlarmKind::Bumper) { kobuki::mask::BUMPER_CENTRE } else { 0 },
+            wheel_drop: self.cliff_bits().1,
+            cliff: self.cliff_bits().0,
             left_encoder: self.cfg.encoder_start.wrapping_add(l as u16),
             right_encoder: self.cfg.encoder_start.wrapping_add(r as u16),
             left_pwm: pwm(self.drive.velocity().v - half),
@@ -108,7 +135,7 @@ impl SimKobuki {
             buttons: 0,
             charger: 0,
             battery_dv: self.cfg.battery_dv,
-            over_current: 0,
+            over_current: if self.alarm(AlarmKind::MotorFault) { 1 } else { 0 },
         };
         out.extend(kobuki::encode_frame(&cs.to_subpayload()));
         self.feedback_sent += 1;
@@ -134,7 +161,8 @@ impl SimDevice for SimKobuki {
         while self.t_s < end {
             let next = end.min(self.t_s + 0.005).min(self.next_feedback_s.max(self.t_s));
             // Cliff or wheel drop: the firmware cuts the motors.
-            let cmd = if self.cliff != 0 || self.wheel_drop != 0 { BodyVelocity::ZERO } else { self.cmd };
+            let (cliff, drop) = self.cliff_bits();
+            let cmd = if cliff != 0 || drop != 0 { BodyVelocity::ZERO } else { self.cmd };
             if next > self.t_s {
                 self.drive.step(cmd, next - self.t_s);
                 self.t_s = next;
@@ -196,5 +224,28 @@ mod tests {
         k.cliff = kobuki::mask::CLIFF_CENTRE;
         k.advance(1.0, &mut out);
         assert_eq!(k.drive().velocity().v, 0.0);
+    }
+
+    #[test]
+    fn scheduled_alarms_show_in_the_sensor_data() {
+        // Edges off the 20 ms feedback grid.
+        let alarms = ["cliff@0.11+0.1", "wheel-drop@0.31+0.1", "motor-fault@0.51+0.1", "bumper@0.71+0.1"]
+            .map(|s| s.parse().unwrap())
+            .to_vec();
+        let cfg = SimKobukiConfig { alarms, ..Default::default() };
+        assert!(cfg.check_alarms().is_ok());
+        let mut k = SimKobuki::new(cfg);
+        let mut out = Vec::new();
+        k.advance(1.0, &mut out);
+        let mut d = KobukiDecoder::new();
+        let sensors: Vec<CoreSensors> = d.feed(&out).iter().filter_map(|p| d.core_sensors(p)).collect();
+        let count = |f: fn(&CoreSensors) -> bool| sensors.iter().filter(|s| f(s)).count();
+        // 50 Hz feedback: 0.1 s windows hold 5 samples each.
+        assert_eq!(count(|s| s.cliff != 0), 5);
+        assert_eq!(count(|s| s.wheel_drop != 0), 5);
+        assert_eq!(count(|s| s.over_current != 0), 5);
+        assert_eq!(count(|s| s.bumper != 0), 5);
+        let estop = SimKobukiConfig { alarms: vec!["estop@0+1".parse().unwrap()], ..Default::default() };
+        assert!(estop.check_alarms().unwrap_err().contains("no e-stop"));
     }
 }

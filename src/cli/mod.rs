@@ -26,6 +26,27 @@ pub mod sim;
 #[cfg(feature = "sim")]
 pub mod sim_base;
 
+/// Exit status of a `sim` with a run that did not reach its goal or touched something.
+pub const EXIT_MISSION_FAILED: u8 = 3;
+/// Exit status of `replay --check` when the results differ from the log.
+pub const EXIT_MISMATCH: u8 = 1;
+/// Exit status when an input cannot be read (as for usage errors, which clap exits with 2).
+pub const EXIT_UNREADABLE: u8 = 2;
+
+/// An error that ends the program with its own exit status (README, "Exit codes"); any other
+/// error exits 1.
+#[derive(Debug, thiserror::Error)]
+#[error("{message}")]
+pub struct Exit {
+    pub code: u8,
+    pub message: String,
+}
+
+/// The exit status for an error out of [`run`].
+pub fn exit_code(err: &anyhow::Error) -> u8 {
+    err.downcast_ref::<Exit>().map_or(1, |e| e.code)
+}
+
 #[derive(Debug, Parser)]
 #[command(name = "flownav", version, about = "Optical-flow navigation for indoor robots with one webcam", long_about = None)]
 pub struct Cli {

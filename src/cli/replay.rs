@@ -2,16 +2,17 @@
 //! pipeline on a run log (one file, or the parts of a split log in order) and prints one JSON
 //! line per logged step (the perception, goal and set-point, and how it compared with the log),
 //! then a summary on stderr. With `--check` the command fails when a step that could be
-//! reproduced differs from the log. See docs/logging.md, "Replay".
+//! reproduced differs from the log (exit status 1), and exits 2 when the log cannot be read.
+//! See docs/logging.md, "Replay".
 
 use std::io::Write;
 use std::path::PathBuf;
 
-use anyhow::{Context, bail};
+use anyhow::Context;
 use clap::Args as ClapArgs;
 use serde_json::json;
 
-use super::Common;
+use super::{Common, EXIT_MISMATCH, EXIT_UNREADABLE, Exit};
 use crate::config::Config;
 use crate::replay::{self, Check, ReplayOptions, ReplaySummary, StepRecord};
 
@@ -36,7 +37,9 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     // The log carries its configuration and calibration; --config replaces the configuration
     // (what-if replays), --flow-backend picks the engine (default cpu, the bit-exact reference).
     let config = match &common.config {
-        Some(path) => Some(Config::load(path).with_context(|| format!("loading --config {}", path.display()))?),
+        Some(path) => {
+            Some(Config::load(path).map_err(|e| unreadable(format!("loading --config {}: {e:#}", path.display())))?)
+        }
         None => None,
     };
     let options = ReplayOptions { backend: common.flow_backend, config };
@@ -52,7 +55,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
             write_error = Some(e);
         }
     })
-    .with_context(|| format!("replaying {}", args.logs[0].display()))?;
+    .map_err(|e| unreadable(format!("replaying {}: {e:#}", args.logs[0].display())))?;
     match write_error {
         Some(e) if e.kind() == std::io::ErrorKind::BrokenPipe => return Ok(()),
         Some(e) => return Err(e).context("writing to stdout"),
@@ -70,17 +73,24 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
             let diffs: Vec<String> = m.diffs.iter().map(ToString::to_string).collect();
             format!("; first at seq {} (t {} ns): {}", m.seq, m.t_ns, diffs.join("; "))
         });
-        bail!(
+        let message = format!(
             "replay check failed: {} of {} checked steps differ from the log{}",
             summary.mismatched,
             summary.checked,
             first.unwrap_or_default()
         );
+        return Err(Exit { code: EXIT_MISMATCH, message }.into());
     }
     if args.check && summary.checked == 0 {
-        bail!("replay check failed: no step of the log could be checked ({} logged)", summary.steps);
+        let message = format!("replay check failed: no step of the log could be checked ({} logged)", summary.steps);
+        return Err(Exit { code: EXIT_MISMATCH, message }.into());
     }
     Ok(())
+}
+
+/// The log (or `--config`) cannot be read: exit status 2, apart from a mismatch.
+fn unreadable(message: String) -> anyhow::Error {
+    Exit { code: EXIT_UNREADABLE, message }.into()
 }
 
 /// One step as a JSON line: the fields of `flownav analyze` (seq, t, tpo, obstacle, rough, fine,

@@ -203,7 +203,23 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         let mut out = std::io::stdout().lock();
         writeln!(out, "{}", serde_json::to_string(&agg)?)?;
     }
-    Ok(())
+    outcome(&results)
+}
+
+/// Exit status 3 when a run did not reach its goal or touched something (README, "Exit codes").
+fn outcome(results: &[SimSummary]) -> anyhow::Result<()> {
+    let failed: Vec<&SimSummary> = results.iter().filter(|r| !r.reached || r.collisions > 0).collect();
+    if failed.is_empty() {
+        return Ok(());
+    }
+    let seeds: Vec<String> = failed.iter().map(|r| r.seed.to_string()).collect();
+    let message = format!(
+        "{} of {} runs did not reach the goal or touched something (seeds {})",
+        failed.len(),
+        results.len(),
+        seeds.join(", ")
+    );
+    Err(super::Exit { code: super::EXIT_MISSION_FAILED, message }.into())
 }
 
 /// The tokio runtime one mission runs on (the simulated base's pty and the pipeline).

@@ -1,12 +1,13 @@
 //! `flownav sim-base`: a simulated motor base on a pseudo-terminal, for developing host or
 //! firmware code without hardware. Prints the pty path (`/dev/pts/N`) as the first line of
 //! stdout, then serves FNP/1 (or, with `--kobuki`, the Kobuki protocol) until Ctrl-C/SIGTERM.
+//! `--alarm KIND@START+FOR` raises one of the base's alarms on its own clock (see docs/sim.md).
 
 use super::Common;
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use mocks::OdometryError;
-use mocks::faults::FaultConfig;
+use mocks::faults::{AlarmWindow, FaultConfig};
 use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimDevice, SimServer};
 use mocks::sim_kobuki::{SimKobuki, SimKobukiConfig};
 use std::io::Write;
@@ -25,6 +26,10 @@ pub struct Args {
     /// Link faults, e.g. "drop=0.01,corrupt=0.005,delay=0.05:20ms,disconnect=0.02:1s,seed=7".
     #[arg(long, value_name = "SPEC", default_value = "")]
     pub faults: FaultConfig,
+    /// Raise one of the base's alarms, KIND@START+FOR in seconds since the base started, e.g.
+    /// `estop@2+1.5`; KIND: bumper, estop, cliff, wheel-drop, motor-fault. Repeatable.
+    #[arg(long, value_name = "KIND@START+FOR")]
+    pub alarm: Vec<AlarmWindow>,
     /// Simulate a Kobuki (TurtleBot 2) instead of an FNP/1 base.
     #[arg(long)]
     pub kobuki: bool,
@@ -53,7 +58,8 @@ async fn serve(args: Args) -> anyhow::Result<()> {
         link: args.link.clone(),
     };
     if args.kobuki {
-        let mut cfg = SimKobukiConfig::default();
+        let mut cfg = SimKobukiConfig { alarms: args.alarm.clone(), ..Default::default() };
+        cfg.check_alarms().map_err(anyhow::Error::msg)?;
         cfg.drive.seed = args.seed;
         cfg.drive.error = args.odometry_error;
         let server = SimServer::start(SimKobuki::new(cfg), opts).context("opening a pseudo-terminal")?;
@@ -62,7 +68,8 @@ async fn serve(args: Args) -> anyhow::Result<()> {
         let (commands, feedback) = server.with_device(|k| (k.commands, k.feedback_sent));
         tracing::info!(commands, feedback, faults = ?server.fault_stats(), pose = ?server.pose(), "simulated Kobuki stopped");
     } else {
-        let mut cfg = SimBaseConfig { watchdog_ms: args.watchdog_ms, ..Default::default() };
+        let mut cfg = SimBaseConfig { watchdog_ms: args.watchdog_ms, alarms: args.alarm.clone(), ..Default::default() };
+        cfg.check_alarms().map_err(anyhow::Error::msg)?;
         cfg.drive.seed = args.seed;
         cfg.drive.error = args.odometry_error;
         let server = SimServer::start(SimBase::new(cfg), opts).context("opening a pseudo-terminal")?;

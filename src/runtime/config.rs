@@ -95,6 +95,9 @@ pub struct RunConfig {
     /// a zero set-point goes out (camera stall, slow step). 40..=190 ms, so that the stop is
     /// commanded within 200 ms of the last frame (DESIGN.md).
     pub stall_ms: u64,
+    /// After the base's e-stop, cliff, wheel-drop or motor-fault alarm clears, the robot stays
+    /// stopped this long, ms (100..=60000).
+    pub alarm_hold_ms: u64,
     /// Write an MCAP log of the run.
     pub log: bool,
     /// Where the logs go (one file per run).
@@ -105,7 +108,7 @@ pub struct RunConfig {
 
 impl Default for RunConfig {
     fn default() -> Self {
-        Self { stall_ms: 150, log: true, log_dir: PathBuf::from("logs"), log_split_mb: None }
+        Self { stall_ms: 150, alarm_hold_ms: 1000, log: true, log_dir: PathBuf::from("logs"), log_split_mb: None }
     }
 }
 
@@ -119,6 +122,12 @@ impl RunConfig {
             return bad(
                 "stall_ms",
                 "must be in 40..=190 ms: longer than a frame period, short enough to stop within 200 ms",
+            );
+        }
+        if !(100..=60_000).contains(&self.alarm_hold_ms) {
+            return bad(
+                "alarm_hold_ms",
+                "must be in 100..=60000 ms: how long a base alarm must stay clear before the robot moves again",
             );
         }
         if self.log_split_mb == Some(0) {
@@ -213,6 +222,8 @@ mod tests {
         assert!(err("[base]\nwatchdog_ms = 30\n").contains("base.watchdog_ms"));
         assert!(err("[run]\nstall_ms = 250\n").contains("run.stall_ms"));
         assert!(err("[run]\nlog_split_mb = 0\n").contains("run.log_split_mb"));
+        assert!(err("[run]\nalarm_hold_ms = 50\n").contains("run.alarm_hold_ms"));
+        assert_eq!(toml::from_str::<Config>("[run]\nalarm_hold_ms = 2500\n").unwrap().run.alarm_hold_ms, 2500);
         assert!(toml::from_str::<Config>("[base]\nkind = \"roomba\"\n").is_err());
         assert!(toml::from_str::<Config>("[run]\nbogus = 1\n").is_err());
     }

@@ -9,6 +9,7 @@
 //!   it expires `stall` after the capture of its frame; a failed step, a camera that went away or
 //!   an expiry gives a zero at once; between frames the command in force is repeated.
 //! - [`camera_trouble`]: what a camera error means for the run (skip, fail-safe, end, fatal).
+//! - [`Alarms`] (in [`super::alarms`]): the base's alarms, the last filter on what goes out.
 //! - [`ControlLoop`]: all of it on one thread, with the [`FrameSlot`] (latest frame wins) and the
 //!   odometry history, driven by the caller's clock. `sim` calls it once per simulated tick.
 //!
@@ -22,13 +23,14 @@
 //! stop coming.
 
 use super::RuntimeError;
+use super::alarms::Alarms;
 use super::odometry::OdometryHistory;
 use super::slot::{FrameSlot, Taken};
 use crate::logging::record::{RecordImage, record_failsafe, record_frame, record_step};
 use crate::logging::{LogHandle, LogLevel};
 use crate::step::{Pipeline, StepOutput};
 use hal::camera::monotonic_ns;
-use hal::{BodyVelocity, ErrorKind, Frame, Odometry};
+use hal::{BaseStatus, BodyVelocity, ErrorKind, Frame, Odometry};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::Arc;
 use std::time::Duration;
@@ -64,13 +66,35 @@ pub struct Stepper {
     stalled: bool,
     /// Wall-clock and thread CPU time of the last `Pipeline::step`, ns.
     last_step_ns: (u64, u64),
+    /// Steps begun (frames handed to `Pipeline::step`).
+    steps: u64,
+    /// The test hook of the stop-path tests: panic in this step (see [`test_panic_at_step`]).
+    panic_at: Option<u64>,
+}
+
+/// Debug builds only: `FLOWNAV_TEST_PANIC_AT_STEP=N` makes the `N`th step (from 0) panic, so the
+/// tests can prove on the real binary that a panic in the step stops the robot. Read once per
+/// run; release builds (what a robot runs) never look.
+fn test_panic_at_step() -> Option<u64> {
+    if !cfg!(debug_assertions) {
+        return None;
+    }
+    std::env::var("FLOWNAV_TEST_PANIC_AT_STEP").ok()?.trim().parse().ok()
 }
 
 impl Stepper {
     /// With a logger, every frame's image, every step and every `fail_safe` call are recorded
     /// through [`crate::logging::record`], so `flownav replay` can re-run the log bit for bit.
     pub fn new(pipeline: Pipeline, logger: Option<LogHandle>) -> Self {
-        Self { pipeline, logger, prev_t_ns: None, stalled: false, last_step_ns: (0, 0) }
+        Self {
+            pipeline,
+            logger,
+            prev_t_ns: None,
+            stalled: false,
+            last_step_ns: (0, 0),
+            steps: 0,
+            panic_at: test_panic_at_step(),
+        }
     }
 
     pub fn pipeline(&self) -> &Pipeline {
@@ -109,7 +133,14 @@ impl Stepper {
             };
         }
         let (wall0, cpu0) = (monotonic_ns(), thread_cpu_ns());
-        let outcome = catch_unwind(AssertUnwindSafe(|| self.pipeline.step(frame, velocity)));
+        let (step, panic_at) = (self.steps, self.panic_at);
+        self.steps += 1;
+        let outcome = catch_unwind(AssertUnwindSafe(|| {
+            if panic_at == Some(step) {
+                panic!("FLOWNAV_TEST_PANIC_AT_STEP={step}: the test hook's panic");
+            }
+            self.pipeline.step(frame, velocity)
+        }));
         self.last_step_ns = (monotonic_ns().saturating_sub(wall0), thread_cpu_ns().saturating_sub(cpu0));
         match outcome {
             Ok(Ok(Some(output))) => {
@@ -260,6 +291,7 @@ pub struct ControlLoop {
     slot: FrameSlot,
     stepper: Stepper,
     setpoints: Setpoints,
+    alarms: Alarms,
     odometry: OdometryHistory,
     stall_ns: u64,
     /// The capture time of the last frame (or the start): a stall is counted from it.
@@ -281,7 +313,8 @@ impl ControlLoop {
         Ok(Self {
             slot: FrameSlot::new(),
             stepper: Stepper::new(pipeline, logger.clone()),
-            setpoints: Setpoints::new(opts.stall, logger),
+            setpoints: Setpoints::new(opts.stall, logger.clone()),
+            alarms: Alarms::new(opts.alarm_hold, logger),
             odometry: OdometryHistory::new(128),
             stall_ns: opts.stall.as_nanos() as u64,
             last_frame_ns: start_ns,
@@ -301,6 +334,17 @@ impl ControlLoop {
     /// An odometry sample from the base, stamped on the loop's clock.
     pub fn on_odometry(&mut self, odometry: Odometry) {
         self.odometry.push(odometry);
+    }
+
+    /// A status from the base at `now_ns`. Returns the set-point to send now when an alarm was
+    /// raised (a zero), else `None` (the next frame or tick says what to send).
+    pub fn on_status(&mut self, status: &BaseStatus, now_ns: u64) -> Option<BodyVelocity> {
+        self.alarms.on_status(status, now_ns).then_some(BodyVelocity::ZERO)
+    }
+
+    /// Stops the base's alarms caused (halts and bumper presses).
+    pub fn alarm_stops(&self) -> u64 {
+        self.alarms.stops()
     }
 
     /// The velocity the step would get for a frame captured at `t_ns`.
@@ -329,7 +373,7 @@ impl ControlLoop {
             Stepped::Output { seq, t_ns, output, .. } => {
                 self.setpoints.on_setpoint(*seq, *t_ns, output.setpoint(), now_ns).velocity()
             }
-            Stepped::Primed => self.setpoints.on_tick(now_ns),
+            Stepped::Primed => self.command_now(now_ns),
             Stepped::Failed { seq, error, .. } => {
                 self.step_failures += 1;
                 let detail = format!("step failed on frame {seq}: {error}");
@@ -337,7 +381,7 @@ impl ControlLoop {
             }
             Stepped::Panicked(message) => return Err(RuntimeError::StepPanicked(message.clone())),
         };
-        Ok((Some(stepped), send))
+        Ok((Some(stepped), self.alarms.gate(send, now_ns)))
     }
 
     /// A camera error at `now_ns`. `Ok(true)`: the source ended, stop and end the run normally;
@@ -360,6 +404,12 @@ impl ControlLoop {
     /// What the base gets at `now_ns` when no frame was stepped: the command in force, or a
     /// fail-safe zero once no frame came within the stall time or the command expired.
     pub fn on_tick(&mut self, now_ns: u64) -> BodyVelocity {
+        let cmd = self.command_now(now_ns);
+        self.alarms.gate(cmd, now_ns)
+    }
+
+    /// [`Self::on_tick`] before the alarms.
+    fn command_now(&mut self, now_ns: u64) -> BodyVelocity {
         if now_ns.saturating_sub(self.last_frame_ns) >= self.stall_ns && self.stepper.stall(now_ns) {
             self.setpoints.failsafe(Failsafe::Expired, "no frame within the stall time", now_ns);
         }

@@ -38,10 +38,14 @@
 //! - Camera `Unsupported`/`Other` (a human must fix it) → STOP, the run ends with an error.
 //! - Base `Disconnected` → the driver reconnects on its own; the runtime keeps refreshing and
 //!   commands resume when the link is back.
+//! - Base alarms ([`alarms`]): e-stop, cliff, wheel drop or motor fault → zero at once when the
+//!   status arrives, zero while set and for `alarm_hold` after it clears; bumper → zero at once,
+//!   then no forward speed while pressed (reversing and turning pass, for the stall recovery).
 //! - The shutdown future (Ctrl-C, SIGTERM, `--duration`) → STOP, the run ends normally.
 //! - On every exit path the base gets `stop()` and is then dropped (drivers write STOP on drop,
 //!   also while a panic unwinds).
 
+pub mod alarms;
 pub mod config;
 pub mod control;
 pub mod latency;
@@ -51,6 +55,7 @@ pub mod slot;
 
 use crate::logging::{LogHandle, LogLevel};
 use crate::step::Pipeline;
+use alarms::Alarms;
 use control::{CameraTrouble, Failsafe, Order, Setpoints, Stepped, Stepper, camera_trouble, panic_message};
 use hal::camera::monotonic_ns;
 use hal::{BaseEvent, BodyVelocity, Camera, Error, ErrorKind, LinkStats, MotorBase};
@@ -78,6 +83,9 @@ pub struct RuntimeOptions {
     pub camera_backoff_initial: Duration,
     /// The wait doubles after each failed attempt up to this.
     pub camera_backoff_max: Duration,
+    /// After the base's halting alarms (e-stop, cliff, wheel drop, motor fault) clear, the robot
+    /// stays stopped this long (100 ms..=60 s); see [`alarms`].
+    pub alarm_hold: Duration,
 }
 
 impl Default for RuntimeOptions {
@@ -87,6 +95,7 @@ impl Default for RuntimeOptions {
             stall: Duration::from_millis(150),
             camera_backoff_initial: Duration::from_millis(100),
             camera_backoff_max: Duration::from_millis(3200),
+            alarm_hold: Duration::from_millis(1000),
         }
     }
 }
@@ -97,6 +106,7 @@ impl RuntimeOptions {
         Self {
             setpoint_rate_hz: cfg.base.setpoint_rate_hz,
             stall: Duration::from_millis(cfg.run.stall_ms),
+            alarm_hold: Duration::from_millis(cfg.run.alarm_hold_ms),
             ..Self::default()
         }
     }
@@ -116,6 +126,12 @@ impl RuntimeOptions {
         }
         if self.camera_backoff_initial.is_zero() || self.camera_backoff_max < self.camera_backoff_initial {
             return Err(RuntimeError::Options("camera back-off: need 0 < initial ≤ max".into()));
+        }
+        if !(Duration::from_millis(100)..=Duration::from_secs(60)).contains(&self.alarm_hold) {
+            return Err(RuntimeError::Options(format!(
+                "alarm_hold = {} ms must be in 100..=60000 ms",
+                self.alarm_hold.as_millis()
+            )));
         }
         Ok(())
     }
@@ -153,6 +169,9 @@ pub struct RunReport {
     /// Times the runtime forced a zero set-point while it had a valid command: expiry (stall or
     /// slow step), step failure, camera disconnect.
     pub failsafe_stops: u64,
+    /// Stops the base's alarms caused: halts (e-stop, cliff, wheel drop, motor fault) and
+    /// bumper presses.
+    pub alarm_stops: u64,
     /// `set_velocity` calls that succeeded (new set-points, refreshes and zeros).
     pub setpoints_sent: u64,
     /// `set_velocity` calls the driver refused (link down).
@@ -318,6 +337,7 @@ where
         camera_disconnects: c.camera_disconnects.load(Ordering::Relaxed),
         step_failures: c.step_failures.load(Ordering::Relaxed),
         failsafe_stops: control.setpoints.failsafe_stops(),
+        alarm_stops: control.alarms.stops(),
         setpoints_sent: control.sent,
         setpoints_refused: control.refused,
         odometry_events: control.odometry_events,
@@ -371,6 +391,7 @@ struct Control {
     shared: Arc<Shared>,
     logger: Option<LogHandle>,
     setpoints: Setpoints,
+    alarms: Alarms,
     latency: LatencyHistogram,
     sent: u64,
     refused: u64,
@@ -397,6 +418,7 @@ impl Control {
             period: Duration::from_secs_f64(1.0 / opts.setpoint_rate_hz),
             shared,
             setpoints: Setpoints::new(opts.stall, logger.clone()),
+            alarms: Alarms::new(opts.alarm_hold, logger.clone()),
             logger,
             latency: LatencyHistogram::new(),
             sent: 0,
@@ -430,6 +452,9 @@ impl Control {
                     tracing::info!("shutdown requested: stopping the robot");
                     return Ok(EndReason::Shutdown);
                 }
+                // Before the set-points: a status that raises an alarm must be read before the
+                // next command goes out.
+                ev = next_event(base, events_pause) => self.on_event(base, ev),
                 msg = rx.recv() => {
                     let Some(msg) = msg else { return Err(RuntimeError::StepThreadLost) };
                     if let Some(end) = self.on_msg(base, msg) {
@@ -449,13 +474,13 @@ impl Control {
                     let cmd = self.setpoints.on_tick(monotonic_ns());
                     self.send(base, cmd);
                 }
-                ev = next_event(base, events_pause) => self.on_event(ev),
             }
         }
     }
 
-    /// Sends `cmd`; returns whether the driver took it.
+    /// Sends `cmd` through the alarm rules; returns whether the driver took it.
     fn send<B: MotorBase>(&mut self, base: &mut B, cmd: BodyVelocity) -> bool {
+        let cmd = self.alarms.gate(cmd, monotonic_ns());
         match base.set_velocity(cmd) {
             Ok(()) => {
                 self.sent += 1;
@@ -518,7 +543,7 @@ impl Control {
         None
     }
 
-    fn on_event<E: Error>(&mut self, ev: Result<Option<BaseEvent>, E>) {
+    fn on_event<B: MotorBase>(&mut self, base: &mut B, ev: Result<Option<BaseEvent>, B::Error>) {
         match ev {
             Ok(None) => {}
             Ok(Some(ev)) => {
@@ -536,19 +561,12 @@ impl Control {
                     }
                     BaseEvent::Status(s) => {
                         self.status_events += 1;
-                        let changed =
-                            |f: fn(&hal::BaseStatus) -> bool| f(&s) && !self.last_status.as_ref().is_some_and(f);
-                        for (name, f) in [
-                            ("bumper pressed", (|s: &hal::BaseStatus| s.bumper) as fn(&hal::BaseStatus) -> bool),
-                            ("emergency stop", |s| s.estop),
-                            ("the base's watchdog stopped it", |s| s.stopped_by_watchdog),
-                            ("motor fault", |s| s.motor_fault),
-                            ("cliff", |s| s.cliff),
-                            ("wheel drop", |s| s.wheel_drop),
-                        ] {
-                            if changed(f) {
-                                tracing::warn!("base status: {name}");
-                            }
+                        // An alarm raised: a zero now, not at the next refresh.
+                        if self.alarms.on_status(&s, monotonic_ns()) {
+                            self.send(base, BodyVelocity::ZERO);
+                        }
+                        if s.stopped_by_watchdog && !self.last_status.is_some_and(|p| p.stopped_by_watchdog) {
+                            tracing::warn!("base status: the base's watchdog stopped it");
                         }
                         self.last_status = Some(s);
                         if let Some(log) = &self.logger {

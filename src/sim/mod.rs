@@ -486,6 +486,8 @@ pub async fn run_with_camera<C: Camera>(
                     }
                 }
                 Some(BaseEvent::Status(s)) => {
+                    // The set-point of this tick passes the alarm rules (bumper, e-stop, ...).
+                    control.on_status(&s, t_ns);
                     if let Some(log) = log {
                         log.base_status(&hal::BaseStatus { t_ns, ..s });
                     }
