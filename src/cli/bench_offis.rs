@@ -54,12 +54,17 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         ..Default::default()
     };
     let started = std::time::Instant::now();
+    let progress = super::output::bar(args.scenes as u64, "scenes");
+    let mut correct = 0u64;
     let report = bench::run(&cfg, &calib, &opts, |i, s| {
+        correct += (s.truth == s.predicted) as u64;
+        progress.set_message(format!("{correct} classified right"));
+        progress.inc(1);
         if args.verbose_scenes {
             let obstacle =
                 |o: Option<(f64, f64)>| o.map_or("-".to_string(), |(d, b)| format!("{d:.2} m {:+.1}°", b.to_degrees()));
             let got = s.obstacle.map(|(d, b)| (d.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN)));
-            eprintln!(
+            let line = format!(
                 "{i:4} {:<9} -> {:<9} {:.2} | obstacle {} -> {} | {}",
                 s.truth.name(),
                 s.predicted.name(),
@@ -68,8 +73,10 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
                 obstacle(got),
                 s.label
             );
+            super::output::eprintln_above(&progress, &line);
         }
     })?;
+    progress.finish_and_clear();
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {
