@@ -24,9 +24,12 @@ fn text(out: &[u8]) -> String {
     String::from_utf8_lossy(out).into_owned()
 }
 
-/// The numbers OpenCV wrote into the example files (`%.16e`), as Rust reads them.
+/// The numbers OpenCV wrote into the example files (`%.16e`), digit for digit: the import must
+/// read them to the same doubles as Rust reads these literals.
+#[allow(clippy::excessive_precision)]
 const OPENCV_K: [f64; 4] =
     [1.2683147259306331e+03, 1.2691608713912416e+03, 6.4217384615027162e+02, 3.5538152306231474e+02];
+#[allow(clippy::excessive_precision)]
 const OPENCV_D: [f64; 5] = [
     -7.1243609865213456e-02,
     1.2541876530127718e-01,
