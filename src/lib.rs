@@ -23,12 +23,14 @@
 //! | [`pairing`] | the `[pairing]` table: which earlier frame (the keyframe) each frame is paired with | |
 //! | [`config`] | the TOML configuration file: the aggregate of every stage's own params | |
 //! | [`config_error`] | the one validation error of every stage's params (a leaf: imports nothing of the crate) | |
+//! | [`calib_import`] | camera intrinsics from OpenCV `FileStorage` (YAML/XML) and ROS `camera_info` files, for `flownav calib import` | |
 //! | [`cli`] | the `flownav` command line: one module per subcommand | |
 //!
 //! Hardware types and traits are in the `hal` crate (`hal/`), the simulated world in `mocks`.
 //! Only [`sim`] and the simulator's subcommands reach `mocks`, behind the default feature `sim`;
 //! a robot build (`--no-default-features`) leaves the renderer and the simulated bases out.
 
+pub mod calib_import;
 pub mod cli;
 pub mod config;
 pub mod config_error;

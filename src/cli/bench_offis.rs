@@ -74,12 +74,17 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
             c
         })
         .collect();
+    let progress = super::output::bar((args.scenes * kinds.len()) as u64, "scenes");
+    let mut correct = 0u64;
     let reports = bench::run_each(&cfgs, &calib, &opts, |i, k, s| {
+        correct += (s.truth == s.predicted) as u64;
+        progress.set_message(format!("{correct} classified right"));
+        progress.inc(1);
         if args.verbose_scenes {
             let obstacle =
                 |o: Option<(f64, f64)>| o.map_or("-".to_string(), |(d, b)| format!("{d:.2} m {:+.1}°", b.to_degrees()));
             let got = s.obstacle.map(|(d, b)| (d.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN)));
-            eprintln!(
+            let line = format!(
                 "{i:4} {:<7} {:<9} -> {:<9} {:.2} | obstacle {} -> {} | {}",
                 kinds[k].name(),
                 s.truth.name(),
@@ -89,8 +94,10 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
                 obstacle(got),
                 s.label
             );
+            super::output::eprintln_above(&progress, &line);
         }
     })?;
+    progress.finish_and_clear();
     // the first report keeps the JSON contract; with both, the paper's report is its field `paper`
     #[derive(serde::Serialize)]
     struct Both<'a> {

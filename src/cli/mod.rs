@@ -9,14 +9,18 @@ use clap::{Args, Parser, Subcommand};
 use hal::Calibration;
 use std::fmt::Debug;
 use std::ops::RangeBounds;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
+
+pub use output::init_tracing;
 
 pub mod analyze;
 #[cfg(feature = "sim")]
 pub mod bench_offis;
+pub mod calib;
 pub mod devices;
 pub mod flow;
 pub mod log;
+pub mod output;
 #[cfg(feature = "sim")]
 pub mod render;
 pub mod replay;
@@ -65,9 +69,10 @@ pub struct Common {
     /// TOML configuration file; flags given on the command line override it.
     #[arg(long, global = true, value_name = "FILE")]
     pub config: Option<PathBuf>,
-    /// Camera calibration file.
-    #[arg(long, global = true, value_name = "FILE", default_value = "calib/c310.toml")]
-    pub calib: PathBuf,
+    /// Camera calibration file (flownav TOML; `calib import` converts OpenCV/ROS files).
+    /// Without it: the built-in nominal C310 (`calib/c310.toml`), from any folder.
+    #[arg(long, global = true, value_name = "FILE")]
+    pub calib: Option<PathBuf>,
     /// Optical-flow backend (overrides `flow.backend`).
     #[arg(long, global = true, value_enum, value_name = "BACKEND")]
     pub flow_backend: Option<Backend>,
@@ -87,17 +92,14 @@ impl Common {
         Ok(cfg)
     }
 
-    /// The `--calib` file; the built-in nominal C310 when the default path is not reachable from
-    /// this folder, so the default works from anywhere.
+    /// The `--calib` file, else the built-in nominal C310 calibration.
     pub fn calibration(&self) -> anyhow::Result<Calibration> {
-        let path = &self.calib;
-        if path == Path::new("calib/c310.toml") && !path.exists() {
-            tracing::warn!(
-                "calib/c310.toml not found from this directory: using the built-in nominal C310 calibration"
-            );
-            return Ok(Calibration::nominal_c310());
+        match &self.calib {
+            Some(path) => {
+                Calibration::load(path).with_context(|| format!("loading the calibration {} (--calib)", path.display()))
+            }
+            None => Ok(Calibration::nominal_c310()),
         }
-        Calibration::load(path).with_context(|| format!("loading the calibration {}", path.display()))
     }
 }
 
@@ -120,6 +122,8 @@ pub enum Command {
     Render(render::Args),
     /// List V4L2 cameras with their formats, sizes and frame rates.
     Devices(devices::Args),
+    /// Camera calibrations: import OpenCV/ROS files (`calib import`), show one (`calib show`).
+    Calib(calib::Args),
     /// Inspect MCAP run logs (`log info LOG`).
     Log(log::Args),
     /// Drive a robot: camera → optical flow → OFFIS/PAFSIS/MOFIS → serial motor base (docs/deploy.md).
@@ -146,6 +150,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         #[cfg(feature = "sim")]
         Command::Render(args) => render::run(args, &cli.common),
         Command::Devices(args) => devices::run(args, &cli.common),
+        Command::Calib(args) => calib::run(args, &cli.common),
         Command::Log(args) => log::run(args, &cli.common),
         #[cfg(feature = "sim")]
         Command::SimBase(args) => sim_base::run(args, &cli.common),
@@ -157,18 +162,4 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         #[cfg(feature = "sim")]
         Command::BenchOffis(args) => bench_offis::run(args, &cli.common),
     }
-}
-
-/// Log to stderr; `RUST_LOG` wins over `-v`.
-pub fn init_tracing(verbose: u8) {
-    let default = match verbose {
-        0 => "info",
-        1 => "debug",
-        _ => "trace",
-    };
-    // wgpu's GL probe logs driver-loading errors on machines without a GPU; they are not ours.
-    let default = format!("{default},wgpu_hal=off,wgpu_core=warn,naga=warn");
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(&default));
-    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).try_init();
 }

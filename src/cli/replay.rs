@@ -47,7 +47,12 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     let mut out = std::io::BufWriter::new(stdout.lock());
     let mut write_error: Option<std::io::Error> = None;
     let quiet = args.quiet;
+    let progress = super::output::counter("steps");
+    let mut mismatched = 0u64;
     let summary = replay::replay(&args.logs, &options, |record| {
+        mismatched += matches!(record.check, replay::Check::Mismatch { .. }) as u64;
+        progress.set_message(format!("{mismatched} mismatched"));
+        progress.inc(1);
         if quiet || write_error.is_some() {
             return;
         }
@@ -56,6 +61,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         }
     })
     .map_err(|e| unreadable(format!("replaying {}: {e:#}", args.logs[0].display())))?;
+    progress.finish_and_clear();
     match write_error {
         Some(e) if e.kind() == std::io::ErrorKind::BrokenPipe => return Ok(()),
         Some(e) => return Err(e).context("writing to stdout"),

@@ -73,8 +73,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     let camera_spec = args.camera.clone().unwrap_or_else(|| CameraSpec::from_config(&cfg.camera));
     let base_spec = args.base.clone().unwrap_or_else(|| BaseSpec::from_config(&cfg.base));
 
-    let calib = Calibration::load(&common.calib)
-        .with_context(|| format!("loading the calibration {} (--calib)", common.calib.display()))?;
+    let calib = common.calibration()?;
     let mission = match (&args.map, &args.mission) {
         (Some(map_path), Some(mission)) => {
             let map = TopoMap::load(map_path).with_context(|| format!("loading the map {}", map_path.display()))?;

@@ -195,9 +195,23 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         (None, false, false) => Some(PathBuf::from("logs")),
         _ => None,
     };
-    let job =
-        SeedJob { args: &args, world: &world, map: &map, mission: &mission, config: &config, calib: &calib, log_dir };
+    // With --seeds on a terminal: "n of N runs [...] reached r, contacts c, ETA".
+    let progress = match args.seeds {
+        Some(_) => super::output::bar(seeds.len() as u64, "runs").with_message("reached 0, contacts 0"),
+        None => indicatif::ProgressBar::hidden(),
+    };
+    let job = SeedJob {
+        args: &args,
+        world: &world,
+        map: &map,
+        mission: &mission,
+        config: &config,
+        calib: &calib,
+        log_dir,
+        progress: progress.clone(),
+    };
     let results = run_missions(&job, &seeds, args.jobs as usize)?;
+    progress.finish_and_clear();
     if args.seeds.is_some() {
         let agg = Aggregate::of(&results);
         let mut out = std::io::stdout().lock();
@@ -247,9 +261,15 @@ struct SeedJob<'a> {
     config: &'a crate::config::Config,
     calib: &'a Calibration,
     log_dir: Option<PathBuf>,
+    progress: indicatif::ProgressBar,
 }
 
 impl SeedJob<'_> {
+    /// A line on stderr, above the progress bar.
+    fn say(&self, line: String) {
+        super::output::eprintln_above(&self.progress, &line);
+    }
+
     /// One mission: the world for `seed`, the run, its log; progress lines on stderr start with
     /// `tag`.
     fn run(&self, rt: &tokio::runtime::Runtime, seed: Option<u64>, tag: &str) -> anyhow::Result<SimSummary> {
@@ -277,7 +297,7 @@ impl SeedJob<'_> {
         }
         if !args.quiet {
             let start = setup.true_start_pose()?;
-            eprintln!(
+            self.say(format!(
                 "{tag}flownav sim: mission {} on world {:?} (seed {}), {}x{} at {} fps, start ({:.2}, {:.2}, {:.0}°)",
                 setup.mission,
                 setup.world.name,
@@ -288,17 +308,17 @@ impl SeedJob<'_> {
                 start.x,
                 start.y,
                 start.yaw.to_degrees()
-            );
+            ));
             let nav =
                 crate::pafsis::Pafsis::new(setup.map.clone(), setup.mission.clone(), setup.config.pafsis.clone())?;
             let legs: Vec<String> = nav.legs().iter().map(|l| l.to_string()).collect();
-            eprintln!(
+            self.say(format!(
                 "{tag}plan: {} ({:.1} m, map tolerance {}); legs: {}",
                 nav.plan().waypoints.join(" → "),
                 nav.plan().length_m,
                 nav.map().tolerance,
                 legs.join("; ")
-            );
+            ));
             let world = &setup.world;
             let mut obstacles: Vec<String> = world
                 .boxes
@@ -315,7 +335,7 @@ impl SeedJob<'_> {
                 format!("{} cylinder r {:.2} m at ({x:.2}, {y:.2})", c.name, c.radius)
             }));
             if !obstacles.is_empty() {
-                eprintln!("{tag}obstacles: {}", obstacles.join("; "));
+                self.say(format!("{tag}obstacles: {}", obstacles.join("; ")));
             }
         }
         let log = match &self.log_dir {
@@ -332,7 +352,7 @@ impl SeedJob<'_> {
         let summary = rt
             .block_on(sim::run(&setup, handle.as_ref(), |p| {
                 if !quiet {
-                    eprintln!("{tag}{p}");
+                    self.say(format!("{tag}{p}"));
                 }
             }))
             .with_context(|| seed.map_or("the mission".to_string(), |s| format!("the mission of seed {s}")))?;
@@ -340,7 +360,7 @@ impl SeedJob<'_> {
             let path = log.path().to_path_buf();
             let s = log.close().context("closing the MCAP log")?;
             if !args.quiet {
-                eprintln!("{tag}log: {} ({s:?})", path.display());
+                self.say(format!("{tag}log: {} ({s})", path.display()));
             }
         }
         Ok(summary)
@@ -374,8 +394,13 @@ fn run_missions(job: &SeedJob, seeds: &[Option<u64>], n: usize) -> anyhow::Resul
             let summary = job.run(&rt, *seed, &tag)?;
             let mut d = done.lock().map_err(|_| anyhow::anyhow!("a mission thread panicked"))?;
             d.results[i] = Some(summary);
+            let finished = d.results.iter().flatten();
+            let (reached, contacts) =
+                finished.fold((0, 0), |(r, c), s| (r + s.reached as u32, c + (s.collisions > 0) as u32));
+            job.progress.set_message(format!("reached {reached}, contacts {contacts}"));
+            job.progress.inc(1);
             while let Some(Some(s)) = d.results.get(d.printed) {
-                print_summary(s)?;
+                job.progress.suspend(|| print_summary(s))?;
                 d.printed += 1;
             }
         }

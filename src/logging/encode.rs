@@ -7,7 +7,6 @@
 use hal::{Calibration, LumaImage, Odometry};
 use serde_json::Value;
 
-use super::base64;
 use super::foxglove::{
     CameraCalibration, Color, CubePrimitive, CylinderPrimitive, Duration, FrameTransform, ImageAnnotations,
     KeyValuePair, Log, Point2, PointsAnnotation, Pose, Quaternion, SceneEntity, SceneEntityDeletion, SceneUpdate,
@@ -17,6 +16,8 @@ use super::payload::{GoalLog, LogLevel, PerceptionLog, Pose2D, SetpointLog, Step
 use super::{FRAME_BASE, FRAME_CAMERA, FRAME_ODOM};
 use crate::flow::{FlowField, Validity};
 use crate::perception::Perception;
+use base64::Engine as _;
+use base64::engine::general_purpose::STANDARD as BASE64;
 
 /// How much longer than the true displacement flow arrows are drawn (flow is a few pixels per
 /// frame; at ×1 it would be invisible on a 1280-pixel-wide image).
@@ -26,6 +27,15 @@ fn to_json<T: serde::Serialize>(value: &T) -> Vec<u8> {
     // Serialising plain data structs (no maps with non-string keys, no failing Serialize impls)
     // cannot fail; an empty object keeps the file valid should that ever change.
     serde_json::to_vec(value).unwrap_or_else(|_| b"{}".to_vec())
+}
+
+/// Appends the standard (RFC 4648, padded) base64 of `data` to `out`, the encoding Foxglove
+/// expects for `bytes` fields of JSON messages; written in place, so a 1 MB image is one pass.
+fn push_base64(data: &[u8], out: &mut Vec<u8>) {
+    let start = out.len();
+    out.resize(start + base64::encoded_len(data.len(), true).unwrap_or(0), 0);
+    let written = BASE64.encode_slice(data, &mut out[start..]).unwrap_or(0);
+    out.truncate(start + written);
 }
 
 fn push_time(out: &mut Vec<u8>, t: Time) {
@@ -38,7 +48,7 @@ pub fn compressed_image(log_time_ns: u64, jpeg: &[u8], out: &mut Vec<u8>) {
     out.extend_from_slice(b"{\"timestamp\":");
     push_time(out, Time::from_ns(log_time_ns));
     out.extend_from_slice(format!(",\"frame_id\":\"{FRAME_CAMERA}\",\"format\":\"jpeg\",\"data\":\"").as_bytes());
-    base64::encode_into(jpeg, out);
+    push_base64(jpeg, out);
     out.extend_from_slice(b"\"}");
 }
 
@@ -55,7 +65,7 @@ pub fn raw_image(log_time_ns: u64, image: &LumaImage, out: &mut Vec<u8>) {
         )
         .as_bytes(),
     );
-    base64::encode_into(image.data(), out);
+    push_base64(image.data(), out);
     out.extend_from_slice(b"\"}");
 }
 
@@ -336,13 +346,13 @@ mod tests {
         compressed_image(1_500_000_001, &jpeg, &mut out);
         let msg: CompressedImage = serde_json::from_slice(&out).unwrap();
         assert_eq!((msg.timestamp.sec, msg.timestamp.nsec, msg.format.as_str()), (1, 500_000_001, "jpeg"));
-        assert_eq!(base64::decode(&msg.data).unwrap(), jpeg);
+        assert_eq!(BASE64.decode(&msg.data).unwrap(), jpeg);
 
         let img = LumaImage::from_fn(13, 7, |x, y| (x * 19 + y * 3) as u8);
         raw_image(42, &img, &mut out);
         let msg: RawImage = serde_json::from_slice(&out).unwrap();
         assert_eq!((msg.width, msg.height, msg.step, msg.encoding.as_str()), (13, 7, 13, "mono8"));
-        assert_eq!(base64::decode(&msg.data).unwrap(), img.data());
+        assert_eq!(BASE64.decode(&msg.data).unwrap(), img.data());
     }
 
     #[test]

@@ -15,7 +15,6 @@
 //! protobuf; flownav's own types (`flownav.*`) are plain JSON. docs/logging.md says why JSON and
 //! not the `foxglove` crate's protobuf.
 
-mod base64;
 pub mod encode;
 pub mod foxglove;
 mod info;

@@ -12,11 +12,12 @@ use hal::{Calibration, LumaImage, Odometry};
 use mcap::records::Record;
 use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
-use super::base64;
 use super::foxglove::{CameraCalibration, CompressedImage, FrameTransform, Log, RawImage};
 use super::payload::{BaseStatusLog, GoalLog, LogLevel, LoggerStats, PerceptionLog, Pose2D, SetpointLog, StepInputLog};
 use super::{FRAME_BASE, FRAME_ODOM, LogError};
 use crate::flow::FlowField;
+use base64::Engine as _;
+use base64::engine::general_purpose::STANDARD as BASE64;
 
 /// A channel as the file declares it.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -425,7 +426,7 @@ fn decode(channel: &ChannelInfo, data: &[u8]) -> Result<LogEvent, String> {
             if m.encoding != "mono8" {
                 return Ok(LogEvent::Other);
             }
-            let bytes = base64::decode(&m.data).ok_or("image data is not valid base64")?;
+            let bytes = BASE64.decode(&m.data).map_err(|e| format!("image data is not valid base64: {e}"))?;
             let (w, h, step) = (m.width as usize, m.height as usize, m.step as usize);
             if step < w || bytes.len() < step * h.saturating_sub(1) + w {
                 return Err(format!("mono8 image {w}x{h} step {step} has only {} bytes", bytes.len()));
@@ -442,7 +443,9 @@ fn decode(channel: &ChannelInfo, data: &[u8]) -> Result<LogEvent, String> {
             if m.format != "jpeg" {
                 return Ok(LogEvent::Other);
             }
-            LogEvent::Image(LoggedImage::Jpeg(base64::decode(&m.data).ok_or("image data is not valid base64")?))
+            LogEvent::Image(LoggedImage::Jpeg(
+                BASE64.decode(&m.data).map_err(|e| format!("image data is not valid base64: {e}"))?,
+            ))
         }
         "foxglove.CameraCalibration" => match parse::<CameraCalibration>(data)?.flownav_calibration {
             Some(c) => LogEvent::Calibration(Box::new(c)),

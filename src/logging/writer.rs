@@ -225,6 +225,24 @@ pub struct LogSummary {
     pub per_topic: BTreeMap<String, u64>,
 }
 
+impl std::fmt::Display for LogSummary {
+    /// One line: "1 file, 5123 messages on 14 topics, nothing dropped", or with the drops by kind.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = &self.stats;
+        let files = self.files.len();
+        let plural = if files == 1 { "" } else { "s" };
+        write!(f, "{files} file{plural}, {} messages on {} topics, ", s.written, self.per_topic.len())?;
+        if s.dropped() == 0 {
+            return f.write_str("nothing dropped");
+        }
+        write!(
+            f,
+            "dropped {} images, {} other data, {} set-points/odometry; {} lost",
+            s.dropped_images, s.dropped_data, s.dropped_critical, s.lost
+        )
+    }
+}
+
 /// Owns the writer thread. Dereferences to a [`LogHandle`]; [`LogWriter::handle`] gives clones
 /// for other tasks. [`LogWriter::close`] (or dropping it) drains the queue, writes the summary and
 /// footer, and joins the thread.
