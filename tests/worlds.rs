@@ -77,7 +77,11 @@ fn every_world_and_map_loads_and_each_map_matches_its_world() {
         for p in &m.places {
             let Some(pos) = p.position_m else { continue };
             if let Some(q) = w.places.get(&p.name) {
-                assert!((pos[0] - q[0]).hypot(pos[1] - q[1]) < 1e-6, "{stem}: {} at {pos:?} in the map, {q:?} in the world", p.name);
+                assert!(
+                    (pos[0] - q[0]).hypot(pos[1] - q[1]) < 1e-6,
+                    "{stem}: {} at {pos:?} in the map, {q:?} in the world",
+                    p.name
+                );
             }
             let c = w.clearance(pos[0], pos[1]);
             assert!(c.distance_m >= 0.25, "{stem}: place {} is {:.2} m from {}", p.name, c.distance_m, c.object);
@@ -97,10 +101,21 @@ fn every_world_and_map_loads_and_each_map_matches_its_world() {
                 })
                 .sum();
             let d = (b[0] - a[0]).hypot(b[1] - a[1]);
-            assert!((length - d).abs() < 0.01, "{stem}: edge {} -> {} is {length} m long, its places {d:.3} m apart", e.from, e.to);
+            assert!(
+                (length - d).abs() < 0.01,
+                "{stem}: edge {} -> {} is {length} m long, its places {d:.3} m apart",
+                e.from,
+                e.to
+            );
             let heading = (b[1] - a[1]).atan2(b[0] - a[0]).to_degrees();
             let off = (heading - e.heading_deg + 540.0).rem_euclid(360.0) - 180.0;
-            assert!(off.abs() < 0.5, "{stem}: edge {} -> {} heads {} deg, its places lie {heading:.1} deg", e.from, e.to, e.heading_deg);
+            assert!(
+                off.abs() < 0.5,
+                "{stem}: edge {} -> {} heads {} deg, its places lie {heading:.1} deg",
+                e.from,
+                e.to,
+                e.heading_deg
+            );
         }
     }
 }
