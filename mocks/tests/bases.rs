@@ -79,7 +79,11 @@ async fn protocol_vectors_against_the_simulated_base() {
             .await
             .unwrap();
     let Packet::Odom { v_mm_s, omega_mrad_s, left_ticks, right_ticks, .. } = odom.packet else { unreachable!() };
-    assert_eq!((v_mm_s, omega_mrad_s), (100, -150), "ramping at 1 m/s², limited by 4 rad/s²");
+    // Derived from the ticks of the last 20 ms, as firmware does: ramping at 1 m/s² the mean
+    // speed over 80..100 ms is 0.09 m/s; the turn (limited by 4 rad/s²) is at -0.15 rad/s since
+    // 37.5 ms. One tick is 5 mm/s of speed and 15 mrad/s of turn over 20 ms (10,000 ticks/m).
+    assert!((v_mm_s - 90).abs() <= 6, "ramping at 1 m/s²: {v_mm_s} mm/s");
+    assert!((omega_mrad_s + 150).abs() <= 16, "limited by 4 rad/s²: {omega_mrad_s} mrad/s");
     assert!(right_ticks < left_ticks, "turning right: {left_ticks} {right_ticks}");
     // STOP vector (seq 8).
     port.write_all(&hex("05 02 08 65 fa 00")).await.unwrap();
