@@ -43,8 +43,9 @@ pub const SCHEMA_ENCODING: &str = "jsonschema";
 pub const FRAME_ODOM: &str = "odom";
 /// The robot frame (REP-103).
 pub const FRAME_BASE: &str = "base_link";
-/// The camera's optical frame (x right, y down, z forward).
-pub const FRAME_CAMERA: &str = "camera";
+/// The camera's optical frame (x right, y down, z forward), named as ROS names optical frames
+/// (REP-103's `_optical_frame` suffix), so a flownav log's TF tree lines up with a ROS robot's.
+pub const FRAME_CAMERA: &str = "camera_optical_frame";
 
 /// Errors of the logger and the log reader.
 #[derive(Debug, thiserror::Error)]
