@@ -158,6 +158,27 @@ async fn a_camera_stall_in_sim_expires_the_last_setpoint() {
     assert_eq!(setpoint_at(&reports, 3.0), BodyVelocity::ZERO);
 }
 
+/// An e-stop the simulated base raises from 1 s to 3 s stops the robot in the closed loop and
+/// keeps it stopped while it is set.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_estop_in_sim_stops_the_robot_until_the_hold_has_passed() {
+    let mut setup = hall_setup();
+    setup.alarms = vec!["estop@1+2".parse().unwrap()];
+    setup.max_time_s = 3.5;
+    let mut reports = Vec::new();
+    let s = sim::run(&setup, None, |p| reports.push(p.clone())).await.expect("the simulation runs");
+    for t in [2.0, 3.0] {
+        assert_eq!(setpoint_at(&reports, t), BodyVelocity::ZERO, "at {t} s: {reports:?}");
+    }
+    let moved = |a: f64, b: f64| {
+        let (p, q) =
+            (reports.iter().find(|r| r.t_s == a).unwrap().pose, reports.iter().find(|r| r.t_s == b).unwrap().pose);
+        (q.x - p.x).hypot(q.y - p.y)
+    };
+    assert!(moved(2.0, 3.0) < 0.01, "no motion under the e-stop: {}", s.to_json_line());
+    assert!(moved(0.0, 1.0) > 0.05, "driving before it: {reports:?}");
+}
+
 #[test]
 fn summary_json_starts_with_the_contract_fields() {
     let s = SimSummary {

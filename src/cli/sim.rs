@@ -73,6 +73,10 @@ pub struct Args {
     /// DYAW in degrees. The navigation still believes it starts on the place.
     #[arg(long, value_name = "DX,DY,DYAW_DEG", value_parser = parse_start_error, allow_hyphen_values = true)]
     pub start_error: Option<mocks::Pose>,
+    /// Raise one of the simulated base's alarms, KIND@START+FOR in simulated seconds, e.g.
+    /// `estop@20+3` (bumper, estop, motor-fault; repeatable). Contacts press the bumper anyway.
+    #[arg(long, value_name = "KIND@START+FOR")]
+    pub alarm: Vec<mocks::faults::AlarmWindow>,
 }
 
 /// `DX,DY,DYAW_DEG` → a pose offset (m, m, rad).
@@ -292,6 +296,7 @@ impl SeedJob<'_> {
         setup.max_time_s = args.max_time;
         setup.realtime = args.realtime;
         setup.odometry_error = args.odometry_error;
+        setup.alarms = args.alarm.clone();
         if let Some(e) = args.start_error {
             setup.start_error = e;
         }

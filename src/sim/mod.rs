@@ -119,6 +119,8 @@ pub struct SimSetup {
     /// The true start pose's offset from the mission's start place (`--start-error`): x and y in
     /// the map frame, m, and yaw, rad. PAFSIS still believes it starts on the place.
     pub start_error: Pose,
+    /// Alarms the simulated base raises on its clock (`--alarm`, as `sim-base --alarm`).
+    pub alarms: Vec<mocks::faults::AlarmWindow>,
 }
 
 impl SimSetup {
@@ -140,6 +142,7 @@ impl SimSetup {
             link_timeout: Duration::from_secs(30),
             odometry_error: OdometryError::UNCALIBRATED,
             start_error: Pose::new(0.0, 0.0, 0.0),
+            alarms: Vec::new(),
         }
     }
 
@@ -415,6 +418,8 @@ pub async fn run_with_camera<C: Camera>(
     let mut base_cfg = SimBaseConfig::default();
     base_cfg.drive.seed = setup.seed.wrapping_add(1);
     base_cfg.drive.error = setup.odometry_error;
+    base_cfg.alarms = setup.alarms.clone();
+    base_cfg.check_alarms().map_err(|problem| SimError::Option { name: "alarm", problem })?;
     let server =
         SimServer::start(SimBase::new(base_cfg), ServeOptions { clock: SimClock::Manual, ..Default::default() })
             .map_err(SimError::Pty)?;
