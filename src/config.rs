@@ -9,6 +9,7 @@ pub use crate::config_error::ConfigError;
 use crate::control::ControlLimits;
 use crate::flow::FlowParams;
 use crate::mofis::MofisParams;
+use crate::odometry_calibration::OdometryParams;
 use crate::offis::OffisParams;
 use crate::pafsis::PafsisParams;
 use crate::pairing::PairingParams;
@@ -24,6 +25,7 @@ pub struct Config {
     pub flow: FlowParams,
     /// `[pairing]`: which earlier frame each frame is paired with for the flow.
     pub pairing: PairingParams,
+    pub odometry: OdometryParams,
     pub offis: OffisParams,
     pub pafsis: PafsisParams,
     pub mofis: MofisParams,
@@ -52,6 +54,7 @@ impl Config {
         self.flow.validate()?;
         self.pafsis.validate()?;
         self.pairing.validate()?;
+        self.odometry.validate()?;
         self.mofis.validate()?;
         self.control.validate()?;
         self.base.validate()?;

@@ -40,6 +40,7 @@ pub mod frames;
 pub mod fuzzy;
 pub mod logging;
 pub mod mofis;
+pub mod odometry_calibration;
 pub mod offis;
 pub mod pafsis;
 pub mod pairing;

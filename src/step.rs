@@ -27,6 +27,7 @@ use crate::config::Config;
 use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
 use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::{Mofis, MofisError, MofisInput, MofisOutput, MofisStep, Route};
+use crate::odometry_calibration::{OdometryCalibration, OdometryParams};
 use crate::offis::features::TpoModel;
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
@@ -71,9 +72,11 @@ struct Keyframe {
     frame: Frame,
     /// Capture time of the last frame stepped (for the per-frame interval), ns.
     last_ns: u64,
-    /// Distance driven and yaw turned since the keyframe (odometry), m and rad.
+    /// Distance driven and yaw turned since the keyframe (odometry, the turn corrected by the
+    /// learned errors and as the base reported it), m and rad.
     travel_m: f64,
     yaw_rad: f64,
+    raw_yaw_rad: f64,
     /// Largest change of the measured turn rate between two steps since the keyframe, rad/s.
     turn_change: f64,
     /// The turn rate of the last step (`None` for a priming frame: its odometry is not used,
@@ -161,6 +164,9 @@ pub struct Pipeline {
     points: Vec<SurfacePoint>,
     pairing: PairingParams,
     key: Option<Keyframe>,
+    odometry: OdometryParams,
+    /// The odometry's turn errors learned from the flow ([`crate::odometry_calibration`]).
+    calibration: OdometryCalibration,
 }
 
 impl Pipeline {
@@ -181,6 +187,8 @@ impl Pipeline {
             points: Vec::new(),
             pairing: cfg.pairing,
             key: None,
+            odometry: cfg.odometry,
+            calibration: OdometryCalibration::default(),
             flow,
             turn: TurnCompensation::default(),
             backend,
@@ -204,6 +212,11 @@ impl Pipeline {
     /// when the step was measurable).
     pub fn surface_points(&self) -> &[SurfacePoint] {
         &self.points
+    }
+
+    /// The odometry's turn errors learned so far from the flow.
+    pub fn odometry_calibration(&self) -> &OdometryCalibration {
+        &self.calibration
     }
 
     /// The MOFIS stage.
@@ -276,9 +289,13 @@ impl Pipeline {
         let prev_t_ns = key.last_ns;
         let frame_dt = (frame.t_ns - prev_t_ns) as f64 * 1e-9;
         key.last_ns = frame.t_ns;
+        let raw = odometry;
+        // everything downstream sees the turn with the learned errors taken out
+        let odometry = if self.odometry.learn { self.calibration.apply(raw) } else { raw };
         if odometry.v.is_finite() && odometry.omega.is_finite() {
             key.travel_m += odometry.v * frame_dt;
             key.yaw_rad += odometry.omega * frame_dt;
+            key.raw_yaw_rad += raw.omega * frame_dt;
             if let Some(last) = key.last_omega {
                 key.turn_change = key.turn_change.max((odometry.omega - last).abs());
             }
@@ -294,11 +311,26 @@ impl Pipeline {
         let measured = self.mofis.measurable(span, dt, key.turn_change);
         let (seq, t_ns) = (frame.seq, frame.t_ns);
         if key.travel_m.abs() >= self.pairing.min_baseline_m || dt >= self.pairing.max_span_s {
+            // Consecutive keyframe pairs tile the drive, so the yaw their flow measures adds up
+            // to the camera's turn; the pairs in between overlap them and would count it twice.
+            let odo = self.odometry;
+            if let Some(residual) =
+                self.offis.measure_yaw(&flow, span, dt, &calib).filter(|r| odo.admits(*r, key.yaw_rad))
+            {
+                if odo.learn {
+                    let (turn, drive) = (key.raw_yaw_rad, key.travel_m);
+                    self.calibration.observe(turn, drive, residual + self.calibration.correction(turn, drive));
+                }
+                if let Navigator::Mission(pafsis) = &mut self.navigator {
+                    pafsis.correct_heading(odo.heading_gain * residual);
+                }
+            }
             *key = Keyframe {
                 frame,
                 last_ns: t_ns,
                 travel_m: 0.0,
                 yaw_rad: 0.0,
+                raw_yaw_rad: 0.0,
                 turn_change: 0.0,
                 last_omega: Some(odometry.omega),
             };
@@ -319,7 +351,15 @@ impl Pipeline {
     /// The frame becomes the keyframe, with no motion since it.
     fn prime(&mut self, frame: Frame) {
         let last_ns = frame.t_ns;
-        self.key = Some(Keyframe { frame, last_ns, travel_m: 0.0, yaw_rad: 0.0, turn_change: 0.0, last_omega: None });
+        self.key = Some(Keyframe {
+            frame,
+            last_ns,
+            travel_m: 0.0,
+            yaw_rad: 0.0,
+            raw_yaw_rad: 0.0,
+            turn_change: 0.0,
+            last_omega: None,
+        });
     }
 
     /// The frame with its lens distortion undone ([`hal::undistort`]): the pinhole image with the

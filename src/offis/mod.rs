@@ -264,6 +264,21 @@ impl Offis {
         self.step_filtered(flow, odo, dt, calib, Motion::default())
     }
 
+    /// The yaw the flow of a pair says the odometry `odo` missed over its interval `dt`, rad
+    /// (positive = the camera turned further left): [`geometry::yaw_correction`] on the valid
+    /// vectors. `None` when too few blocks show it, and while the robot drives slower than
+    /// `depth.min_speed_m_s`: on the spot the camera, mounted ahead of the axle, swings
+    /// sideways, and that parallax, which depends on the unknown depth, reads as up to
+    /// `mount_x / depth` more turn (10 % facing a wall 1 m away).
+    pub fn measure_yaw(&mut self, flow: &FlowField, odo: BodyVelocity, dt: f64, calib: &Calibration) -> Option<f64> {
+        if !(dt.is_finite() && dt > 0.0 && odo.v.abs() >= self.params.depth.min_speed_m_s && odo.omega.is_finite()) {
+            return None;
+        }
+        let cam = PinholeCamera::new(calib, flow.width, flow.height);
+        let blocks = flow.vectors.iter().filter(|f| f.valid()).map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
+        geometry::yaw_correction(&cam, odo, dt, blocks, &mut self.scratch)
+    }
+
     /// Forgets the earlier steps of the temporal filter (a gap in the sequence: a stop, a stall,
     /// a failure).
     pub fn reset_filter(&mut self) {

@@ -377,6 +377,10 @@ pub struct WallFixes {
     pub heading_rad: f64,
     /// Sum of the lateral corrections' sizes, m.
     pub lateral_m: f64,
+    /// Keyframe pairs whose flow corrected the heading ([`Pafsis::correct_heading`]), and the
+    /// sum of those corrections' sizes, rad.
+    pub flow_pairs: u64,
+    pub flow_heading_rad: f64,
 }
 
 impl Pafsis {
@@ -504,6 +508,17 @@ impl Pafsis {
     /// How much side walls have corrected the estimate so far.
     pub fn wall_fixes(&self) -> WallFixes {
         self.wall_fixes
+    }
+
+    /// The flow of a keyframe pair says the robot turned `fix_rad` more than the odometry
+    /// ([`crate::odometry_calibration`]): the heading takes it.
+    pub fn correct_heading(&mut self, fix_rad: f64) {
+        if self.status != GoalStatus::Active || !fix_rad.is_finite() {
+            return;
+        }
+        self.heading_rad = wrap_angle(self.heading_rad + fix_rad);
+        self.wall_fixes.flow_pairs += 1;
+        self.wall_fixes.flow_heading_rad += fix_rad.abs();
     }
 
     /// Applies the side walls of the frame to the heading and the dead-reckoned offset.

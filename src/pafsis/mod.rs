@@ -62,7 +62,8 @@ pub struct PafsisParams {
     /// swerved to and returns to the line behind it (0: never pause).
     pub cross_track_hold_m: f64,
     /// On corridor legs, each frame's side walls ([`walls`]) move the heading estimate this
-    /// fraction of the way to what they say (0: dead-reckoned heading only).
+    /// fraction of the way to what they say (0, the default: the flow's yaw keeps the heading
+    /// better; the fitted walls' directions scatter by degrees at the simulator's 320×180).
     pub wall_heading_gain: f64,
     /// ... and the dead-reckoned offset from the centre line, where the map gives the
     /// corridor's width (0: never).
@@ -87,7 +88,7 @@ impl Default for PafsisParams {
             lookahead_m: 1.5,
             cross_track_odometry: true,
             cross_track_hold_m: 1.0,
-            wall_heading_gain: 0.05,
+            wall_heading_gain: 0.0,
             wall_lateral_gain: 0.03,
         }
     }

@@ -226,6 +226,11 @@ pub struct SimSummary {
     pub replans: u64,
     /// Frames whose side walls corrected PAFSIS's heading ([`crate::pafsis::walls`]).
     pub wall_fixes: u64,
+    /// Keyframe pairs whose flow corrected PAFSIS's heading, and the odometry's turn scale
+    /// error and bend (rad per metre) learned from them ([`crate::pafsis::odometry_calibration`]).
+    pub flow_yaw_fixes: u64,
+    pub odometry_scale: f64,
+    pub odometry_bend_rad_m: f64,
     /// Mean over the stepped frames of |PAFSIS's heading estimate − the true heading|, degrees,
     /// and its value at the end: how far dead reckoning and the landmarks kept the heading.
     pub mean_heading_error_deg: f64,
@@ -697,6 +702,9 @@ pub async fn run_with_camera<C: Camera>(
         landmarks_missed,
         replans,
         wall_fixes: pipeline.pafsis().map_or(0, |p| p.wall_fixes().frames),
+        flow_yaw_fixes: pipeline.pafsis().map_or(0, |p| p.wall_fixes().flow_pairs),
+        odometry_scale: round4(pipeline.odometry_calibration().scale()),
+        odometry_bend_rad_m: round4(pipeline.odometry_calibration().bend_rad_m()),
         mean_heading_error_deg: round3((heading_err_sum / heading_err_n.max(1) as f64).to_degrees()),
         final_heading_error_deg: round3(heading_err_last.to_degrees()),
         odometry_error: setup.odometry_error.to_string(),
@@ -725,4 +733,8 @@ fn round3(x: f64) -> f64 {
 
 fn stalled(t_s: f64, what: &'static str, setup: &SimSetup) -> SimError {
     SimError::Stalled { t_s, what, timeout_ms: setup.link_timeout.as_millis() }
+}
+
+fn round4(x: f64) -> f64 {
+    (x * 10_000.0).round() / 10_000.0
 }

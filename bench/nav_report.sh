@@ -1,0 +1,32 @@
+#!/bin/sh
+# Navigation on a real robot's terms: every shipped world with the default uncalibrated base
+# (`--odometry-error` default) and the robot started 0.1 m, 0.1 m and 3° off its place, and the
+# office with its map's lengths 5 % too long and 5 % too short (bench/scale_map.py). One JSON
+# line per run, the aggregate line of each set last; the figures in docs/results.md come from it.
+#
+#   bench/nav_report.sh                  # seeds 0..100 (reporting); navigation is tuned on 100..199
+#   SEEDS=0..10 bench/nav_report.sh      # a quicker look
+#   OUT=/tmp/nav bench/nav_report.sh     # one file per set there (default: target/nav-report)
+set -eu
+cd "$(dirname "$0")/.."
+cargo build --release --quiet
+bin="${CARGO_TARGET_DIR:-target}/release/flownav"
+out="${OUT:-target/nav-report}"
+mkdir -p "$out"
+seeds="${SEEDS:-0..100}"
+jobs="${JOBS:-$(nproc 2>/dev/null || echo 1)}"
+start="0.1,-0.1,3"
+run() { # NAME, then the flags of the set
+    name="$1"; shift
+    "$bin" sim --seeds "$seeds" --jobs "$jobs" --no-log --quiet --start-error "$start" "$@" >"$out/$name.jsonl" || true
+    tail -n 1 "$out/$name.jsonl"
+}
+run office --mission R9:D2
+for w in lshape narrow hall; do
+    case $w in lshape) m=R5:D10 ;; narrow) m=R5:D4 ;; hall) m=R10:D2 ;; esac
+    run "$w" --world "mocks/worlds/$w.toml" --map "maps/$w.toml" --mission "$m"
+done
+for f in 1.05 0.95; do
+    python3 bench/scale_map.py maps/office.toml "$f" --anchor R9 >"$out/office-x$f.toml"
+    run "office-map-x$f" --map "$out/office-x$f.toml" --mission R9:D2
+done
