@@ -162,6 +162,8 @@ pub struct Pipeline {
     navigator: Navigator,
     mofis: Mofis,
     points: Vec<SurfacePoint>,
+    /// The straight walls OFFIS fitted in the current frame, robot frame.
+    walls: Vec<WallSighting>,
     pairing: PairingParams,
     key: Option<Keyframe>,
     odometry: OdometryParams,
@@ -185,6 +187,7 @@ impl Pipeline {
             undistorter: None,
             undistorted: LumaImage::default(),
             points: Vec::new(),
+            walls: Vec::new(),
             pairing: cfg.pairing,
             key: None,
             odometry: cfg.odometry,
@@ -335,8 +338,8 @@ impl Pipeline {
                 last_omega: Some(odometry.omega),
             };
         }
-        let walls = wall_sightings(&self.offis.attributes().model, [calib.mount.x_m, calib.mount.y_m]);
-        let goal = self.navigator.goal(&perception, &walls, odometry, frame_dt);
+        wall_sightings(&self.offis.attributes().model, [calib.mount.x_m, calib.mount.y_m], &mut self.walls);
+        let goal = self.navigator.goal(&perception, &self.walls, odometry, frame_dt);
         // the solid surface points, filtered as MOFIS's obstacle memory takes them in
         let (m, mp) = (&calib.mount, self.mofis.memory().params());
         let (min_radial, max_tangential) = (mp.min_radial_px, mp.max_tangential);
@@ -398,17 +401,16 @@ impl Pipeline {
     }
 }
 
-/// OFFIS's fitted planes as walls in the robot's frame: the fit is made from the camera, which
-/// sits at the mount's offset from the robot's reference point.
-fn wall_sightings(model: &TpoModel, mount_m: [f64; 2]) -> Vec<WallSighting> {
-    model
-        .planes()
-        .map(|l| WallSighting {
-            point_m: [l.centre[0] + mount_m[0], l.centre[1] + mount_m[1]],
-            dir: l.dir,
-            length_m: l.extent[1] - l.extent[0],
-        })
-        .collect()
+/// OFFIS's fitted planes as walls in the robot's frame, written into `out` (reused from frame
+/// to frame): the fit is made from the camera, which sits at the mount's offset from the
+/// robot's reference point.
+fn wall_sightings(model: &TpoModel, mount_m: [f64; 2], out: &mut Vec<WallSighting>) {
+    out.clear();
+    out.extend(model.planes().map(|l| WallSighting {
+        point_m: [l.centre[0] + mount_m[0], l.centre[1] + mount_m[1]],
+        dir: l.dir,
+        length_m: l.extent[1] - l.extent[0],
+    }));
 }
 
 #[cfg(test)]

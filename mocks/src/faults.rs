@@ -111,9 +111,8 @@ impl FromStr for FaultConfig {
     /// `disconnect=RATE_PER_S[:FOR]`, `seed=N`. An empty string is a perfect link.
     fn from_str(spec: &str) -> Result<Self, Self::Err> {
         let mut cfg = FaultConfig::default();
-        for item in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-            let (key, value) =
-                item.split_once('=').ok_or_else(|| FaultSpecError(format!("'{item}' is not key=value")))?;
+        for (key, value) in crate::spec::items(spec) {
+            let value = value.ok_or_else(|| FaultSpecError(format!("'{key}' is not key=value")))?;
             let (first, second) = match value.split_once(':') {
                 Some((a, b)) => (a, Some(b)),
                 None => (value, None),

@@ -28,6 +28,7 @@ pub mod rendered_camera;
 pub mod scene;
 pub mod sim_base;
 pub mod sim_kobuki;
+pub mod spec;
 pub mod texture;
 pub mod truth;
 pub mod world;

@@ -128,11 +128,8 @@ impl FromStr for OdometryError {
             return Ok(spec);
         }
         let mut seen = Vec::new();
-        for item in s.split(',').map(str::trim).filter(|i| !i.is_empty()) {
-            let (key, value) = match item.split_once('=') {
-                Some((k, v)) => (k.trim(), v.trim()),
-                None => (item, ""),
-            };
+        for (key, value) in crate::spec::items(s) {
+            let value = value.unwrap_or("");
             let known = spec.field(key).is_some();
             if !known {
                 return Err(OdometryErrorSpecError::UnknownKey { key: key.to_string() });

@@ -371,7 +371,7 @@ pub struct Pafsis {
 /// How much the side walls have moved the estimate so far.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct WallFixes {
-    /// Frames whose side walls corrected the heading.
+    /// Frames whose side walls corrected the heading or the offset from the centre line.
     pub frames: u64,
     /// Sum of the heading corrections' sizes, rad.
     pub heading_rad: f64,
@@ -523,9 +523,8 @@ impl Pafsis {
 
     /// Applies the side walls of the frame to the heading and the dead-reckoned offset.
     fn correct_from_walls(&mut self) {
-        let walls = std::mem::take(&mut self.walls);
         let Some(leg) = self.legs.get(self.leg) else { return };
-        if !matches!(leg.kind, LegKind::Corridor { .. }) || walls.is_empty() {
+        if !matches!(leg.kind, LegKind::Corridor { .. }) || self.walls.is_empty() {
             return;
         }
         let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
@@ -536,22 +535,24 @@ impl Pafsis {
             _ => None,
         };
         let leg_heading = leg.heading_rad;
-        let innovation = walls::innovation(&walls, heading_rel, lane, &WallGates::default());
-        if let Some(d) = innovation.heading_rad {
-            let fix = self.params.wall_heading_gain * d;
+        let innovation = walls::innovation(&self.walls, heading_rel, lane, &WallGates::default());
+        self.walls.clear();
+        let (heading_gain, lateral_gain) = (self.params.wall_heading_gain, self.params.wall_lateral_gain);
+        let heading = innovation.heading_rad.filter(|_| heading_gain > 0.0).map(|d| heading_gain * d);
+        let lateral = innovation.lateral_m.filter(|_| lateral_gain > 0.0).map(|d| lateral_gain * d);
+        if let Some(fix) = heading {
             self.heading_rad = wrap_angle(self.heading_rad + fix);
-            self.wall_fixes.frames += 1;
             self.wall_fixes.heading_rad += fix.abs();
         }
-        if let (Some(d), Some([x, y])) = (innovation.lateral_m, &mut self.position_m) {
-            let fix = self.params.wall_lateral_gain * d;
+        if let (Some(fix), Some([x, y])) = (lateral, &mut self.position_m) {
             // Along the leg's left normal.
             *x -= fix * leg_heading.sin();
             *y += fix * leg_heading.cos();
             self.wall_fixes.lateral_m += fix.abs();
         }
-        self.walls = walls;
-        self.walls.clear();
+        if heading.is_some() || lateral.is_some() {
+            self.wall_fixes.frames += 1;
+        }
     }
 
     /// Integrates odometry only: for steps without perception (the robot is being stopped),

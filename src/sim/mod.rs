@@ -224,7 +224,7 @@ pub struct SimSummary {
     pub doors_matched: u64,
     pub landmarks_missed: u64,
     pub replans: u64,
-    /// Frames whose side walls corrected PAFSIS's heading ([`crate::pafsis::walls`]).
+    /// Frames whose side walls corrected PAFSIS's heading or offset ([`crate::pafsis::walls`]).
     pub wall_fixes: u64,
     /// Keyframe pairs whose flow corrected PAFSIS's heading, and the odometry's turn scale
     /// error and bend (rad per metre) learned from them ([`crate::pafsis::odometry_calibration`]).
