@@ -7,6 +7,7 @@
 #   bench/nav_report.sh                  # seeds 0..100 (reporting); navigation is tuned on 100..199
 #   SEEDS=0..10 bench/nav_report.sh      # a quicker look
 #   OUT=/tmp/nav bench/nav_report.sh     # one file per set there (default: target/nav-report)
+#   SETS="lshape hall" bench/nav_report.sh   # some of: office lshape narrow hall office-map
 set -eu
 cd "$(dirname "$0")/.."
 cargo build --release --quiet
@@ -16,17 +17,21 @@ mkdir -p "$out"
 seeds="${SEEDS:-0..100}"
 jobs="${JOBS:-$(nproc 2>/dev/null || echo 1)}"
 start="0.1,-0.1,3"
+sets="${SETS:-office lshape narrow hall office-map}"
+want() { case " $sets " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 run() { # NAME, then the flags of the set
     name="$1"; shift
     "$bin" sim --seeds "$seeds" --jobs "$jobs" --no-log --quiet --start-error "$start" "$@" >"$out/$name.jsonl" || true
     tail -n 1 "$out/$name.jsonl"
 }
-run office --mission R9:D2
+if want office; then run office --mission R9:D2; fi
 for w in lshape narrow hall; do
     case $w in lshape) m=R5:D10 ;; narrow) m=R5:D4 ;; hall) m=R10:D2 ;; esac
-    run "$w" --world "mocks/worlds/$w.toml" --map "maps/$w.toml" --mission "$m"
+    if want "$w"; then run "$w" --world "mocks/worlds/$w.toml" --map "maps/$w.toml" --mission "$m"; fi
 done
-for f in 1.05 0.95; do
-    python3 bench/scale_map.py maps/office.toml "$f" --anchor R9 >"$out/office-x$f.toml"
-    run "office-map-x$f" --map "$out/office-x$f.toml" --mission R9:D2
-done
+if want office-map; then
+    for f in 1.05 0.95; do
+        python3 bench/scale_map.py maps/office.toml "$f" --anchor R9 >"$out/office-x$f.toml"
+        run "office-map-x$f" --map "$out/office-x$f.toml" --mission R9:D2
+    done
+fi

@@ -246,6 +246,27 @@ fn the_flows_yaw_learns_the_odometrys_bend_and_keeps_the_heading() {
     assert!(without.max_off_centre_m > 0.5, "odometry alone {:.2} m off the centre line", without.max_off_centre_m);
 }
 
+#[test]
+fn a_steady_drift_off_the_walls_corrects_a_start_heading_error() {
+    let map = office();
+    // The robot is put down 3° off the start place's heading. The flow's yaw measures only
+    // changes and never sees it; the side walls show the robot drifting off the estimate.
+    let heading_error = |w: &Walk, nav: &Pafsis| wrap_angle(nav.progress().heading_rad - w.heading).abs().to_degrees();
+    let run = |drift: f64| {
+        let params = PafsisParams { wall_drift_gain: drift, ..PafsisParams::default() };
+        let mut nav = Pafsis::new(map.clone(), "R9:D2".parse::<Mission>().unwrap(), params).unwrap();
+        let mut walk = Walk { walls: true, ..Walk::new(21.0, -3.0, 93.0) };
+        let (status, _) = walk.run(&mut nav, 120.0);
+        (status, heading_error(&walk, &nav), walk)
+    };
+    let (status, with, walk) = run(PafsisParams::default().wall_drift_gain);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!(with < 1.0, "with the drift term the heading ends {with:.2}° off");
+    assert!((walk.x - 9.0).abs() < 0.3, "stopped at x = {:.2}", walk.x);
+    let (_, without, _) = run(0.0);
+    assert!(without > 2.5, "without it {without:.2}° off");
+}
+
 /// R9:D2 with the side walls pulling the heading (off by default: the flow's yaw keeps it).
 fn wall_mission(map: &TopoMap) -> Pafsis {
     let params = PafsisParams { wall_heading_gain: 0.05, ..PafsisParams::default() };

@@ -21,6 +21,8 @@ use serde::Serialize;
 use std::fmt;
 
 /// Within a streak of door frames, a door distance that grows by more than this is a new door.
+/// Below this speed a lateral disagreement with the walls says nothing about the heading, m/s.
+const DRIFT_MIN_SPEED_M_S: f64 = 0.1;
 const NEW_DOOR_JUMP_M: f64 = 0.5;
 
 /// Obstacles seen nearer than this pause the cross-track correction
@@ -349,8 +351,9 @@ pub struct Pafsis {
     /// Dead-reckoned position in the map frame, m: from the start place's position and the
     /// odometry (`None` when the map gives the start place no position).
     position_m: Option<[f64; 2]>,
-    /// Distance driven since the start (forward or back), m.
+    /// Distance driven since the start (forward or back), m, and the last speed, m/s.
     odometer_m: f64,
+    speed_m_s: f64,
     /// The cross-track correction pauses until the odometer reaches this (an obstacle is being
     /// passed), m.
     hold_line_until_m: f64,
@@ -409,6 +412,7 @@ impl Pafsis {
             heading_rad: wrap_angle(start_heading),
             position_m,
             odometer_m: 0.0,
+            speed_m_s: 0.0,
             hold_line_until_m: 0.0,
             streak: (TpoShape::None, 0),
             door_sighting_reported: false,
@@ -544,13 +548,19 @@ impl Pafsis {
             self.heading_rad = wrap_angle(self.heading_rad + fix);
             self.wall_fixes.heading_rad += fix.abs();
         }
+        let drift = self.params.wall_drift_gain;
+        if let (Some(d), true) = (innovation.lateral_m, drift > 0.0 && self.speed_m_s >= DRIFT_MIN_SPEED_M_S) {
+            let fix = drift * d;
+            self.heading_rad = wrap_angle(self.heading_rad + fix);
+            self.wall_fixes.heading_rad += fix.abs();
+        }
         if let (Some(fix), Some([x, y])) = (lateral, &mut self.position_m) {
             // Along the leg's left normal.
             *x -= fix * leg_heading.sin();
             *y += fix * leg_heading.cos();
             self.wall_fixes.lateral_m += fix.abs();
         }
-        if heading.is_some() || lateral.is_some() {
+        if heading.is_some() || lateral.is_some() || (drift > 0.0 && innovation.lateral_m.is_some()) {
             self.wall_fixes.frames += 1;
         }
     }
@@ -568,6 +578,7 @@ impl Pafsis {
         }
         self.heading_rad = wrap_angle(self.heading_rad + odo.omega * dt);
         self.odometer_m += odo.v.abs() * dt;
+        self.speed_m_s = odo.v;
         if let Some(leg) = self.legs.get(self.leg)
             && !matches!(leg.kind, LegKind::Turn)
         {

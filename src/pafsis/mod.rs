@@ -68,6 +68,11 @@ pub struct PafsisParams {
     /// ... and the dead-reckoned offset from the centre line, where the map gives the
     /// corridor's width (0: never).
     pub wall_lateral_gain: f64,
+    /// ... and, while driving, the heading turns by this many radians per metre of that
+    /// lateral disagreement, each frame: the robot drifting steadily off the estimate is what a
+    /// wrong heading does (a start turned off the map's heading, which the flow's yaw, measuring
+    /// only changes, never sees) (0: never).
+    pub wall_drift_gain: f64,
 }
 
 impl Default for PafsisParams {
@@ -90,6 +95,7 @@ impl Default for PafsisParams {
             cross_track_hold_m: 1.0,
             wall_heading_gain: 0.0,
             wall_lateral_gain: 0.03,
+            wall_drift_gain: 0.01,
         }
     }
 }
@@ -123,6 +129,9 @@ impl PafsisParams {
         }
         if !(0.0..=1.0).contains(&self.wall_lateral_gain) {
             return bad("wall_lateral_gain", "must be in [0, 1]");
+        }
+        if !(0.0..=1.0).contains(&self.wall_drift_gain) {
+            return bad("wall_drift_gain", "must be in [0, 1] rad/m");
         }
         if !(0.0..=1.0).contains(&self.min_speed_fraction) {
             return bad("min_speed_fraction", "must be in [0, 1]");
