@@ -96,8 +96,8 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     tracing::info!("flow backend {}: {}", backend.engine, backend.reason);
 
     // The source errors name the camera and the fix; their text already includes their causes.
-    let camera =
-        open_camera(&camera_spec, &cfg.camera, looping).map_err(|e| anyhow::anyhow!("opening the camera {camera_spec}: {e}"))?;
+    let camera = open_camera(&camera_spec, &cfg.camera, looping)
+        .map_err(|e| anyhow::anyhow!("opening the camera {camera_spec}: {e}"))?;
     let reopen = {
         let (spec, cam_cfg) = (camera_spec.clone(), cfg.camera.clone());
         move || open_camera(&spec, &cam_cfg, looping)

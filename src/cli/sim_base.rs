@@ -13,8 +13,8 @@ use mocks::faults::{AlarmWindow, FaultConfig, FaultStats};
 use mocks::sim_base::{
     LinkFaultStats, ServeOptions, SimBase, SimBaseConfig, SimBaseCounters, SimClock, SimDevice, SimServer,
 };
-use mocks::stop_gaps::StopGapSummary;
 use mocks::sim_kobuki::{SimKobuki, SimKobukiConfig};
+use mocks::stop_gaps::StopGapSummary;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
