@@ -120,7 +120,7 @@ summary = {
     "counted": counted,
     "stop_gaps": gaps,
     "gap_max_ms": gap_max,
-    "gap_p99_ms": gap_p99,
+    "gap_p99_ms_worst_kind": gap_p99,
     "rss_kb": {"start": rss_start, "end": rss_end, "samples": len(rss)},
     "rss_growth_pct": round(growth, 2),
     "frames_processed": run["frames_processed"],
