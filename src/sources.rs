@@ -5,7 +5,8 @@
 //! config table into a [`SourceCamera`], one concrete type implementing [`hal::Camera`] for both,
 //! so the runtime is written once. A [`FolderCamera`] plays its folder at the folder's own frame
 //! rate (from `odometry.csv`, else the configured fps) and then reports
-//! [`ErrorKind::EndOfStream`]: the runtime stops the robot and ends the run.
+//! [`ErrorKind::EndOfStream`]: the runtime stops the robot and ends the run; or, looping
+//! (`run --loop`), plays it again and again with ever-increasing stamps (soak tests).
 
 use crate::frames::{FrameFolder, FramesError, load_luma};
 use hal::camera::monotonic_ns;
@@ -107,14 +108,24 @@ impl Error for SourceError {
 /// ([`monotonic_ns`]), so stamps are spaced exactly as recorded and compare with the base's
 /// odometry stamps. `seq` is the frame's index in the folder (as in `flownav analyze`). After the
 /// last frame every capture returns [`SourceError::EndOfStream`].
+///
+/// A looping camera ([`FolderCamera::looping`]) starts over after the last frame instead. Each
+/// lap lasts the folder's span plus one mean frame interval, so the first frame of a lap comes
+/// one interval after the last frame of the previous lap, as if the folder were recorded again
+/// right after itself: stamps keep increasing (the pipeline refuses stamps that do not), and
+/// `odometry.csv`'s times wrap with the frames. `seq` keeps counting across laps; the frame's
+/// index in the folder is `seq % len()`.
 #[derive(Debug)]
 pub struct FolderCamera {
     folder: FrameFolder,
     /// Offset of each frame from the first, seconds.
     offsets_s: Vec<f64>,
     next: usize,
+    /// Laps completed (looping only).
+    lap: u64,
     start_ns: Option<u64>,
     paced: bool,
+    looping: bool,
 }
 
 impl FolderCamera {
@@ -131,7 +142,19 @@ impl FolderCamera {
                 (0..folder.images.len()).map(|i| i as f64 / fps).collect()
             }
         };
-        Ok(Self { folder, offsets_s, next: 0, start_ns: None, paced: true })
+        Ok(Self { folder, offsets_s, next: 0, lap: 0, start_ns: None, paced: true, looping: false })
+    }
+
+    /// Whether playback starts over after the last frame (default: it ends there).
+    pub fn looping(mut self, looping: bool) -> Self {
+        self.looping = looping;
+        self
+    }
+
+    /// Length of one lap, s: the folder's span plus its mean frame interval.
+    fn lap_s(&self) -> f64 {
+        let span = self.offsets_s.last().copied().unwrap_or(0.0);
+        span + span / (self.offsets_s.len().max(2) - 1) as f64
     }
 
     /// Whether `capture` waits until each frame is due (default) or returns at once with the
@@ -161,13 +184,21 @@ impl Camera for FolderCamera {
     type Error = SourceError;
 
     fn capture(&mut self) -> Result<Frame, SourceError> {
+        if self.looping && self.next == self.len() {
+            self.next = 0;
+            self.lap += 1;
+        }
         let index = self.next;
         let Some(path) = self.folder.images.get(index).cloned() else {
             return Err(SourceError::EndOfStream { dir: self.folder.dir.clone(), frames: self.len() });
         };
         self.next += 1;
         let start = *self.start_ns.get_or_insert_with(monotonic_ns);
-        let t_ns = start + (self.offsets_s[index] * 1e9).round() as u64;
+        // Whole laps and the offset in the lap are rounded separately, so a lap adds the same
+        // number of nanoseconds every time, however long the run.
+        let lap_ns = (self.lap_s() * 1e9).round() as u64;
+        let t_ns = start + self.lap * lap_ns + (self.offsets_s[index] * 1e9).round() as u64;
+        let seq = self.lap * self.len() as u64 + index as u64;
         let image = load_luma(&path).map_err(|source| SourceError::Frame { index, path: path.clone(), source })?;
         if self.paced {
             let now = monotonic_ns();
@@ -175,7 +206,7 @@ impl Camera for FolderCamera {
                 std::thread::sleep(Duration::from_nanos(t_ns - now));
             }
         }
-        Ok(Frame { seq: index as u64, t_ns, image })
+        Ok(Frame { seq, t_ns, image })
     }
 }
 
@@ -205,14 +236,14 @@ impl Camera for SourceCamera {
 
 /// Opens the camera `spec` names: a device is negotiated with `cfg`'s format, size, fps and stall
 /// timeout (`cfg.device` is replaced by the spec's path); a folder plays at its `odometry.csv`
-/// times, else at `cfg.fps`.
-pub fn open_camera(spec: &CameraSpec, cfg: &CameraConfig) -> Result<SourceCamera, SourceError> {
+/// times, else at `cfg.fps`, once or (`looping`) over and over.
+pub fn open_camera(spec: &CameraSpec, cfg: &CameraConfig, looping: bool) -> Result<SourceCamera, SourceError> {
     match spec {
         CameraSpec::Device(path) => {
             let cfg = CameraConfig { device: path.clone(), ..cfg.clone() };
             Ok(SourceCamera::V4l2(Box::new(V4l2Camera::open(&cfg)?)))
         }
-        CameraSpec::Frames(dir) => Ok(SourceCamera::Folder(FolderCamera::open(dir, cfg.fps)?)),
+        CameraSpec::Frames(dir) => Ok(SourceCamera::Folder(FolderCamera::open(dir, cfg.fps)?.looping(looping))),
     }
 }
 
@@ -264,6 +295,24 @@ mod tests {
     }
 
     #[test]
+    fn a_looping_folder_repeats_its_frames_with_increasing_stamps() {
+        // Frames 50 ms and 200 ms apart: span 0.25 s, mean interval 0.125 s, lap 0.375 s.
+        let dir = folder(3, Some("t,v,omega\n10.0,0.2,0\n10.05,0.2,0\n10.25,0.2,0\n"));
+        let mut cam = FolderCamera::open(dir.path(), 30.0).unwrap().paced(false).looping(true);
+        let frames: Vec<Frame> = (0..8).map(|_| cam.capture().unwrap()).collect();
+        assert_eq!(frames.iter().map(|f| f.seq).collect::<Vec<_>>(), [0, 1, 2, 3, 4, 5, 6, 7]);
+        let pixels: Vec<u8> = frames.iter().map(|f| f.image.get(0, 0)).collect();
+        assert_eq!(pixels, [0, 10, 20, 0, 10, 20, 0, 10], "the folder's frames, in order, lap after lap");
+        let dt_ms: Vec<u64> = frames.iter().map(|f| (f.t_ns - frames[0].t_ns) / 1_000_000).collect();
+        assert_eq!(dt_ms, [0, 50, 250, 375, 425, 625, 750, 800]);
+        // A folder without odometry.csv loops at its fps.
+        let dir = folder(2, None);
+        let mut cam = FolderCamera::open(dir.path(), 10.0).unwrap().paced(false).looping(true);
+        let t: Vec<u64> = (0..5).map(|_| cam.capture().unwrap().t_ns).collect();
+        assert!(t.windows(2).all(|w| w[1] - w[0] == 100_000_000), "{t:?}");
+    }
+
+    #[test]
     fn paced_playback_is_never_early() {
         let dir = folder(2, None);
         let mut cam = FolderCamera::open(dir.path(), 50.0).unwrap();
@@ -297,10 +346,10 @@ mod tests {
     fn open_camera_dispatches_on_the_spec() {
         let dir = folder(2, None);
         let cfg = CameraConfig::default();
-        let mut cam = open_camera(&CameraSpec::Frames(dir.path().into()), &cfg).unwrap();
+        let mut cam = open_camera(&CameraSpec::Frames(dir.path().into()), &cfg, false).unwrap();
         assert!(matches!(cam, SourceCamera::Folder(_)));
         assert_eq!(cam.capture().unwrap().seq, 0);
-        let e = open_camera(&CameraSpec::Device("/dev/video_flownav_absent".into()), &cfg).err().unwrap();
+        let e = open_camera(&CameraSpec::Device("/dev/video_flownav_absent".into()), &cfg, false).err().unwrap();
         assert_eq!(e.kind(), ErrorKind::Disconnected);
         assert!(e.to_string().contains("/dev/video_flownav_absent"), "{e}");
     }

@@ -298,7 +298,7 @@ async fn a_frame_folder_plays_to_its_end_then_the_base_is_stopped() {
             .unwrap();
     }
     let spec: CameraSpec = format!("frames:{}", dir.path().display()).parse().unwrap();
-    let camera = open_camera(&spec, &Config::default().camera).unwrap();
+    let camera = open_camera(&spec, &Config::default().camera, false).unwrap();
     let server = serve(None);
     let base = connect(&server.pty_path()).await;
     let report = run_until(camera, base, GUARD).await.unwrap();

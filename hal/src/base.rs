@@ -33,7 +33,7 @@ pub enum BaseEvent {
 }
 
 /// Link health counters a driver keeps (all cumulative since construction).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct LinkStats {
     /// Whether the link is up now (handshake done, bytes arriving).
     pub connected: bool,

@@ -230,6 +230,14 @@ pub struct FaultStats {
     pub bytes_corrupted: u64,
     pub chunks_delayed: u64,
     pub disconnects: u64,
+    /// Frames (bytes up to a 0x00 delimiter, as FNP/1's COBS framing has them) that a dropped or
+    /// corrupted byte made undeliverable. A lost or damaged delimiter merges its frame with the
+    /// next, so both count: each is one packet missing from the sender's sequence, which is what
+    /// a receiver counts.
+    pub frames_hit: u64,
+    /// Of `frames_hit`, those after the last intact frame when the link went down: no later frame
+    /// reveals their sequence gap to a receiver that starts afresh on the new link.
+    pub frames_hit_unseen: u64,
 }
 
 /// Applies a [`FaultConfig`] to chunks of bytes, deterministically for a given seed.
@@ -238,12 +246,28 @@ pub struct FaultInjector {
     cfg: FaultConfig,
     rng: SimRng,
     stats: FaultStats,
+    /// Whether the frame being passed through has lost or changed a byte.
+    frame_hit: bool,
+    /// Frames hit since the last intact frame.
+    hit_since_intact: u64,
 }
 
 impl FaultInjector {
     pub fn new(cfg: FaultConfig) -> Self {
         let rng = SimRng::new(cfg.seed);
-        Self { cfg, rng, stats: FaultStats::default() }
+        Self { cfg, rng, stats: FaultStats::default(), frame_hit: false, hit_since_intact: 0 }
+    }
+
+    /// Ends the frame whose delimiter was just passed (`delimiter_hit`: it was dropped or changed).
+    fn end_frame(&mut self, delimiter_hit: bool) {
+        if self.frame_hit || delimiter_hit {
+            self.stats.frames_hit += 1;
+            self.hit_since_intact += 1;
+        } else {
+            self.hit_since_intact = 0;
+        }
+        // Without its delimiter the next frame runs into this one and is lost with it.
+        self.frame_hit = delimiter_hit;
     }
 
     pub fn config(&self) -> &FaultConfig {
@@ -254,15 +278,21 @@ impl FaultInjector {
     pub fn apply(&mut self, bytes: &[u8]) -> (Vec<u8>, Option<Duration>) {
         let mut out = Vec::with_capacity(bytes.len());
         for &b in bytes {
-            if self.rng.chance(self.cfg.drop) {
+            let hit = if self.rng.chance(self.cfg.drop) {
                 self.stats.bytes_dropped += 1;
-                continue;
-            }
-            if self.rng.chance(self.cfg.corrupt) {
+                true
+            } else if self.rng.chance(self.cfg.corrupt) {
                 self.stats.bytes_corrupted += 1;
                 out.push(b ^ (1 << (self.rng.next_u64() % 8)));
+                true
             } else {
                 out.push(b);
+                false
+            };
+            if b == 0 {
+                self.end_frame(hit);
+            } else {
+                self.frame_hit |= hit;
             }
         }
         let delay = if self.rng.chance(self.cfg.delay) {
@@ -278,7 +308,7 @@ impl FaultInjector {
     pub fn disconnect_now(&mut self, dt: Duration) -> bool {
         let hit = self.rng.chance(self.cfg.disconnect_per_s * dt.as_secs_f64());
         if hit {
-            self.stats.disconnects += 1;
+            self.count_disconnect();
         }
         hit
     }
@@ -286,6 +316,15 @@ impl FaultInjector {
     /// Records a disconnect that was asked for rather than drawn.
     pub fn count_disconnect(&mut self) {
         self.stats.disconnects += 1;
+        self.link_down();
+    }
+
+    /// The link went down: a partial frame is gone, and hit frames that no intact frame followed
+    /// stay unseen by the receiver.
+    pub fn link_down(&mut self) {
+        self.stats.frames_hit_unseen += self.hit_since_intact;
+        self.hit_since_intact = 0;
+        self.frame_hit = false;
     }
 
     pub fn stats(&self) -> FaultStats {
@@ -357,6 +396,30 @@ mod tests {
         // Same seed, same faults.
         let mut again = FaultInjector::new(inj.config().clone());
         assert_eq!(again.apply(&input).0, out);
+    }
+
+    #[test]
+    fn hit_frames_are_counted_as_a_receiver_counts_lost_packets() {
+        use hal::fnp::{self, Decoder, Direction, Packet};
+        let cfg = FaultConfig { drop: 0.01, corrupt: 0.01, seed: 5, ..Default::default() };
+        let mut inj = FaultInjector::new(cfg);
+        let mut rx = Decoder::new(Direction::BaseToHost);
+        for seq in 0..=255u8 {
+            // Chunks of two frames: a delimiter hit merges frames inside and across chunks.
+            let status = Packet::Status { battery_mv: 12_000, flags: 0, last_seq: 0 };
+            let mut bytes = fnp::encode(seq.wrapping_mul(2), &status).to_vec();
+            bytes.extend_from_slice(&fnp::encode(seq.wrapping_mul(2).wrapping_add(1), &status));
+            let (out, _) = inj.apply(&bytes);
+            rx.feed(&out, |_| {});
+        }
+        // A last intact frame reveals the gaps before it.
+        let last = Packet::Status { battery_mv: 12_000, flags: 0, last_seq: 0 };
+        let (out, _) = FaultInjector::new(FaultConfig::default()).apply(&fnp::encode(0, &last));
+        rx.feed(&out, |_| {});
+        let s = inj.stats();
+        assert!(s.frames_hit > 20, "{s:?}");
+        assert_eq!(rx.stats().lost, s.frames_hit, "{s:?} {:?}", rx.stats());
+        assert_eq!(rx.stats().frames, 512 + 1 - s.frames_hit);
     }
 
     #[test]

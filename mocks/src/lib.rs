@@ -29,6 +29,7 @@ pub mod scene;
 pub mod sim_base;
 pub mod sim_kobuki;
 pub mod spec;
+pub mod stop_gaps;
 pub mod texture;
 pub mod truth;
 pub mod world;

@@ -23,6 +23,7 @@
 use crate::faults::{AlarmKind, AlarmWindow, FaultConfig, FaultInjector, FaultStats};
 use crate::kinematics::{CollisionFn, DiffDrive, DiffDriveParams, Pose};
 use crate::pty::Pty;
+use crate::stop_gaps::{LinkFault, StopGaps};
 use hal::BodyVelocity;
 use hal::fnp::{self, DecodeStats, Decoder, Direction, Packet};
 use std::path::PathBuf;
@@ -41,6 +42,9 @@ pub trait SimDevice: Send + 'static {
     fn pose(&self) -> Pose;
     /// The drive train (collision hook, true velocity, ticks).
     fn drive(&mut self) -> &mut DiffDrive;
+    /// The link just suffered `kind` (the server calls this as it injects the fault), for
+    /// devices that measure how long they run on after one ([`crate::stop_gaps`]).
+    fn link_fault(&mut self, _kind: LinkFault) {}
 }
 
 /// Settings of the simulated FNP/1 base.
@@ -125,6 +129,7 @@ pub struct SimBase {
     /// Time and ticks of the previous ODOM: the velocities are derived from the tick increments.
     last_odom: Option<(f64, i64, i64)>,
     counters: SimBaseCounters,
+    gaps: StopGaps,
 }
 
 impl SimBase {
@@ -143,6 +148,7 @@ impl SimBase {
             last_host_seq: 0,
             last_odom: None,
             counters: SimBaseCounters::default(),
+            gaps: StopGaps::default(),
             cfg,
         }
     }
@@ -167,6 +173,12 @@ impl SimBase {
 
     pub fn counters(&self) -> SimBaseCounters {
         SimBaseCounters { decode: self.decoder.stats(), ..self.counters }
+    }
+
+    /// How long the motors ran on a command the host may no longer mean after each link fault
+    /// ([`crate::stop_gaps`]).
+    pub fn stop_gaps(&self) -> &StopGaps {
+        &self.gaps
     }
 
     fn alarm(&self, kind: AlarmKind) -> bool {
@@ -245,11 +257,13 @@ impl SimDevice for SimBase {
                     self.cmd = BodyVelocity::new(f64::from(v_mm_s) / 1000.0, f64::from(omega_mrad_s) / 1000.0);
                     self.last_cmd_s = self.t_s;
                     self.watchdog_stopped = false;
+                    self.gaps.settle(self.t_s);
                 }
                 Packet::Stop => {
                     self.counters.stops += 1;
                     self.cmd = BodyVelocity::ZERO;
                     self.last_cmd_s = self.t_s;
+                    self.gaps.settle(self.t_s);
                 }
                 Packet::Hello { watchdog_ms } => {
                     self.counters.hellos += 1;
@@ -302,6 +316,7 @@ impl SimDevice for SimBase {
                 self.watchdog_stopped = true;
                 self.counters.watchdog_trips += 1;
                 self.cmd = BodyVelocity::ZERO;
+                self.gaps.settle(self.t_s);
             }
             if self.t_s >= self.next_odom_s - 1e-12 {
                 self.odom(out);
@@ -323,6 +338,11 @@ impl SimDevice for SimBase {
 
     fn drive(&mut self) -> &mut DiffDrive {
         &mut self.drive
+    }
+
+    fn link_fault(&mut self, kind: LinkFault) {
+        let stopped = self.cmd == BodyVelocity::ZERO;
+        self.gaps.fault(kind, self.t_s, stopped);
     }
 }
 
@@ -479,8 +499,20 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-async fn write_out(pty: &mut Pty, faults: &mut FaultInjector, bytes: &[u8]) {
+/// Tells `device` which byte faults `apply` injected (`before` is the injector's count before).
+fn note_byte_faults<D: SimDevice>(device: &Mutex<D>, before: FaultStats, after: FaultStats) {
+    if after.bytes_dropped > before.bytes_dropped {
+        lock(device).link_fault(LinkFault::Drop);
+    }
+    if after.bytes_corrupted > before.bytes_corrupted {
+        lock(device).link_fault(LinkFault::Corrupt);
+    }
+}
+
+async fn write_out<D: SimDevice>(pty: &mut Pty, device: &Mutex<D>, faults: &mut FaultInjector, bytes: &[u8]) {
+    let before = faults.stats();
     let (bytes, delay) = if faults.is_clean() { (bytes.to_vec(), None) } else { faults.apply(bytes) };
+    note_byte_faults(device, before, faults.stats());
     if let Some(d) = delay {
         tokio::time::sleep(d).await;
     }
@@ -513,7 +545,9 @@ async fn serve<D: SimDevice>(
         tokio::select! {
             n = pty.read(&mut buf) => match n {
                 Ok(n) if n > 0 => {
+                    let before = rx_faults.stats();
                     let (bytes, _) = if rx_faults.is_clean() { (buf[..n].to_vec(), None) } else { rx_faults.apply(&buf[..n]) };
+                    note_byte_faults(&device, before, rx_faults.stats());
                     lock(&device).receive(&bytes, &mut out);
                 }
                 _ => tokio::time::sleep(Duration::from_millis(10)).await,
@@ -539,13 +573,28 @@ async fn serve<D: SimDevice>(
             }
         }
         if !out.is_empty() {
-            write_out(&mut pty, &mut tx_faults, &out).await;
+            write_out(&mut pty, &device, &mut tx_faults, &out).await;
         }
         if let Some(d) = down_for {
             unread_before += pty.unread_dropped();
             drop(pty);
+            lock(&device).link_fault(LinkFault::Disconnect);
             tracing::info!("simulated link down for {} ms", d.as_millis());
-            tokio::time::sleep(d).await;
+            // The firmware runs on while its wire is cut (its watchdog stops the motors); what it
+            // sends meanwhile goes nowhere.
+            let up_at = tokio::time::Instant::now() + d;
+            loop {
+                let now = tokio::time::Instant::now();
+                if let SimClock::RealTime { .. } = opts.clock {
+                    let mut lost = Vec::new();
+                    lock(&device).advance((now - last).as_secs_f64(), &mut lost);
+                }
+                last = now;
+                if now >= up_at {
+                    break;
+                }
+                tokio::time::sleep(tick_period.min(up_at - now)).await;
+            }
             pty = loop {
                 match Pty::open() {
                     Ok(p) => break p,
@@ -564,7 +613,6 @@ async fn serve<D: SimDevice>(
                 *g += 1;
                 *p = pty.path().to_path_buf();
             });
-            last = tokio::time::Instant::now();
         }
         let mut s = lock(&stats);
         s.to_host = tx_faults.stats();
@@ -728,6 +776,38 @@ mod tests {
         assert!(b.drive().velocity().v > 0.19, "driving again after the alarms");
         let cliff = SimBaseConfig { alarms: vec!["cliff@0+1".parse().unwrap()], ..quiet() };
         assert!(cliff.check_alarms().unwrap_err().contains("no cliff flag"));
+    }
+
+    #[test]
+    fn fault_to_stop_gaps_are_measured_on_the_simulated_clock() {
+        use crate::stop_gaps::LinkFault;
+        let mut b = SimBase::new(quiet());
+        let mut out = Vec::new();
+        let setpoint = |seq: u8| fnp::encode(seq, &Packet::Setpoint { v_mm_s: 200, omega_mrad_s: 0 });
+        b.receive(&fnp::encode(0, &Packet::Hello { watchdog_ms: 150 }), &mut out);
+        // Stopped: a fault costs nothing.
+        b.link_fault(LinkFault::Corrupt);
+        b.receive(&setpoint(1), &mut out);
+        b.advance(0.040, &mut out);
+        // A damaged frame at 40 ms; the next intact SETPOINT, 40 ms later, settles it.
+        b.link_fault(LinkFault::Drop);
+        b.advance(0.040, &mut out);
+        b.receive(&setpoint(2), &mut out);
+        // The link goes down 30 ms after that SETPOINT: the watchdog (150 ms) stops the motors
+        // 120 ms after the fault, with a byte fault of the same moment pending too.
+        b.advance(0.030, &mut out);
+        b.link_fault(LinkFault::Disconnect);
+        b.link_fault(LinkFault::Corrupt);
+        b.advance(0.119, &mut out);
+        assert_eq!(b.stop_gaps().pending(), 2, "not stopped yet");
+        b.advance(0.002, &mut out);
+        assert!(b.stopped_by_watchdog());
+        let s = b.stop_gaps().summary();
+        assert_eq!((s.drop.count, s.corrupt.count, s.disconnect.count, s.pending), (1, 2, 1, 0));
+        assert!((s.drop.max_ms - 40.0).abs() < 1e-6, "{s:?}");
+        assert!((s.disconnect.max_ms - 120.0).abs() < 1e-6, "{s:?}");
+        assert!((s.corrupt.max_ms - 120.0).abs() < 1e-6, "{s:?}");
+        assert!((s.disconnect.p99_ms - 120.0).abs() < 1e-6, "{s:?}");
     }
 
     #[test]

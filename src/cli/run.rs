@@ -1,5 +1,5 @@
 //! `flownav run --camera /dev/videoN|frames:DIR --base fnp:PORT|kobuki:PORT [--map FILE --mission
-//! FROM:TO] [--log DIR | --no-log] [--log-split-mb MB] [--duration S]`: drives a robot.
+//! FROM:TO] [--log DIR | --no-log] [--log-split-mb MB] [--duration S] [--loop]`: drives a robot.
 //!
 //! Opens the pieces in an order that never leaves a base running unattended: the pipeline
 //! (config, calibration, map) and the camera first, then the base, then the log; any failure
@@ -56,6 +56,10 @@ pub struct Args {
     /// Stop the robot and end the run after this many seconds.
     #[arg(long, value_name = "S")]
     pub duration: Option<f64>,
+    /// Play the `frames:DIR` folder over and over (stamps keep increasing) instead of ending the
+    /// run after its last frame; for soak tests. End the run with --duration or Ctrl-C.
+    #[arg(long = "loop")]
+    pub loop_frames: bool,
 }
 
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
@@ -72,6 +76,10 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     }
     let camera_spec = args.camera.clone().unwrap_or_else(|| CameraSpec::from_config(&cfg.camera));
     let base_spec = args.base.clone().unwrap_or_else(|| BaseSpec::from_config(&cfg.base));
+    if args.loop_frames && !matches!(camera_spec, CameraSpec::Frames(_)) {
+        bail!("--loop plays a frame folder over and over: it needs --camera frames:DIR (the camera is {camera_spec})");
+    }
+    let looping = args.loop_frames;
 
     let calib = common.calibration()?;
     let mission = match (&args.map, &args.mission) {
@@ -88,11 +96,11 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     tracing::info!("flow backend {}: {}", backend.engine, backend.reason);
 
     // The source errors name the camera and the fix; their text already includes their causes.
-    let camera =
-        open_camera(&camera_spec, &cfg.camera).map_err(|e| anyhow::anyhow!("opening the camera {camera_spec}: {e}"))?;
+    let camera = open_camera(&camera_spec, &cfg.camera, looping)
+        .map_err(|e| anyhow::anyhow!("opening the camera {camera_spec}: {e}"))?;
     let reopen = {
         let (spec, cam_cfg) = (camera_spec.clone(), cfg.camera.clone());
-        move || open_camera(&spec, &cam_cfg)
+        move || open_camera(&spec, &cam_cfg, looping)
     };
     let camera = ReopeningCamera::new(camera, reopen);
     warn_if_stall_too_short(&cfg, &camera_spec);

@@ -2,14 +2,19 @@
 //! firmware code without hardware. Prints the pty path (`/dev/pts/N`) as the first line of
 //! stdout, then serves FNP/1 (or, with `--kobuki`, the Kobuki protocol) until Ctrl-C/SIGTERM.
 //! `--alarm KIND@START+FOR` raises one of the base's alarms on its own clock (see docs/sim.md).
+//! When it stops, an FNP/1 base prints one JSON line: the faults it injected, what its decoder
+//! counted, and its fault → stop gaps (docs/serial.md).
 
 use super::Common;
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use mocks::OdometryError;
-use mocks::faults::{AlarmWindow, FaultConfig};
-use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimDevice, SimServer};
+use mocks::faults::{AlarmWindow, FaultConfig, FaultStats};
+use mocks::sim_base::{
+    LinkFaultStats, ServeOptions, SimBase, SimBaseConfig, SimBaseCounters, SimClock, SimDevice, SimServer,
+};
 use mocks::sim_kobuki::{SimKobuki, SimKobukiConfig};
+use mocks::stop_gaps::StopGapSummary;
 use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -75,10 +80,51 @@ async fn serve(args: Args) -> anyhow::Result<()> {
         let server = SimServer::start(SimBase::new(cfg), opts).context("opening a pseudo-terminal")?;
         announce(&server, &args)?;
         wait_for_signal().await?;
-        let counters = server.with_device(|b| b.counters());
-        tracing::info!(?counters, faults = ?server.fault_stats(), pose = ?server.pose(), "simulated FNP/1 base stopped");
+        let (counters, gaps, time_s) = server.with_device(|b| (b.counters(), b.stop_gaps().summary(), b.time_s()));
+        let faults = server.fault_stats();
+        tracing::info!(?counters, ?faults, pose = ?server.pose(), "simulated FNP/1 base stopped");
+        let summary = fnp_summary(time_s, &counters, &faults, &gaps);
+        let mut out = std::io::stdout().lock();
+        writeln!(out, "{summary}")?;
+        out.flush()?;
     }
     Ok(())
+}
+
+/// The JSON line an FNP/1 base prints when it stops.
+fn fnp_summary(
+    time_s: f64,
+    counters: &SimBaseCounters,
+    faults: &LinkFaultStats,
+    gaps: &StopGapSummary,
+) -> serde_json::Value {
+    let direction = |f: &FaultStats| {
+        serde_json::json!({
+            "bytes_dropped": f.bytes_dropped,
+            "bytes_corrupted": f.bytes_corrupted,
+            "chunks_delayed": f.chunks_delayed,
+            "frames_hit": f.frames_hit,
+            "frames_hit_unseen": f.frames_hit_unseen,
+        })
+    };
+    serde_json::json!({
+        "time_s": time_s,
+        "faults": {
+            "to_host": direction(&faults.to_host),
+            "to_base": direction(&faults.to_device),
+            "disconnects": faults.disconnects,
+            "unread_dropped_bytes": faults.unread_dropped,
+        },
+        "base": {
+            "setpoints": counters.setpoints,
+            "stops": counters.stops,
+            "hellos": counters.hellos,
+            "watchdog_trips": counters.watchdog_trips,
+            "frames_dropped": counters.decode.dropped(),
+            "frames_lost": counters.decode.lost,
+        },
+        "stop_gaps": gaps,
+    })
 }
 
 fn announce<D: SimDevice>(server: &SimServer<D>, args: &Args) -> anyhow::Result<()> {

@@ -185,8 +185,8 @@ pub struct RunReport {
     /// CPU time of the step thread per step (`CLOCK_THREAD_CPUTIME_ID`): what the step costs on
     /// an idle core, where `step_wall` also counts waiting for a core on a loaded machine.
     pub step_cpu: LatencySummary,
-    /// The driver's link counters at the end.
-    #[serde(skip)]
+    /// The driver's link counters at the end: frames received, dropped as malformed and lost
+    /// (sequence gaps), disconnects and reconnects, command timeouts.
     pub link: LinkStats,
     /// `link.disconnects`, for the JSON summary.
     pub base_disconnects: u64,
