@@ -108,6 +108,12 @@ impl OdometryCalibration {
         BodyVelocity::new(odo.v, odo.omega + self.correction(odo.omega, odo.v))
     }
 
+    /// Replaces the fit by `scale` and `bend_rad_m` (replay: the values a logged step used).
+    pub fn set_fit(&mut self, scale: f64, bend_rad_m: f64) {
+        self.scale = scale;
+        self.bend_rad_m = bend_rad_m;
+    }
+
     /// The fitted turn scale error `a` (−0.04: the odometry reports 4 % more turn than the
     /// robot makes).
     pub fn scale(&self) -> f64 {

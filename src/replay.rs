@@ -314,7 +314,10 @@ impl Replayer {
                         self.diverged = false;
                     }
                 }
-                StepInputLog::Step { seq, t_ns, prev_t_ns, v, omega } => {
+                StepInputLog::Step { seq, t_ns, prev_t_ns, v, omega, odometry_scale, odometry_bend_rad_m } => {
+                    // the learned odometry errors depend on pairs a gap may have hidden: the
+                    // step gets the ones the robot used
+                    self.pipeline.set_odometry_calibration(odometry_scale, odometry_bend_rad_m);
                     self.step(&g, setpoint, seq, t_ns, prev_t_ns, BodyVelocity { v, omega }, on_step)
                 }
             }

@@ -167,8 +167,10 @@ pub struct Pipeline {
     pairing: PairingParams,
     key: Option<Keyframe>,
     odometry: OdometryParams,
-    /// The odometry's turn errors learned from the flow ([`crate::odometry_calibration`]).
+    /// The odometry's turn errors learned from the flow ([`crate::odometry_calibration`]),
+    /// and the ones the last step applied.
     calibration: OdometryCalibration,
+    applied: [f64; 2],
 }
 
 impl Pipeline {
@@ -192,6 +194,7 @@ impl Pipeline {
             key: None,
             odometry: cfg.odometry,
             calibration: OdometryCalibration::default(),
+            applied: [0.0; 2],
             flow,
             turn: TurnCompensation::default(),
             backend,
@@ -220,6 +223,18 @@ impl Pipeline {
     /// The odometry's turn errors learned so far from the flow.
     pub fn odometry_calibration(&self) -> &OdometryCalibration {
         &self.calibration
+    }
+
+    /// The turn scale error and bend (rad/m) the last step took out of its odometry (zeros when
+    /// `[odometry] learn` is off); logged with each step for replay.
+    pub fn applied_calibration(&self) -> [f64; 2] {
+        self.applied
+    }
+
+    /// Makes the next step take these errors out of its odometry, as a logged step did
+    /// (replay; the fit goes on learning from there).
+    pub fn set_odometry_calibration(&mut self, scale: f64, bend_rad_m: f64) {
+        self.calibration.set_fit(scale, bend_rad_m);
     }
 
     /// The MOFIS stage.
@@ -294,7 +309,9 @@ impl Pipeline {
         key.last_ns = frame.t_ns;
         let raw = odometry;
         // everything downstream sees the turn with the learned errors taken out
-        let odometry = if self.odometry.learn { self.calibration.apply(raw) } else { raw };
+        let cal = &self.calibration;
+        self.applied = if self.odometry.learn { [cal.scale(), cal.bend_rad_m()] } else { [0.0; 2] };
+        let odometry = if self.odometry.learn { cal.apply(raw) } else { raw };
         if odometry.v.is_finite() && odometry.omega.is_finite() {
             key.travel_m += odometry.v * frame_dt;
             key.yaw_rad += odometry.omega * frame_dt;

@@ -70,6 +70,12 @@ pub enum StepInputLog {
         v: f64,
         /// Turn rate fed to the step, rad/s, positive to the left.
         omega: f64,
+        /// The learned odometry errors the step took out of `omega`
+        /// ([`crate::odometry_calibration`]); 0 in logs written before they were learned.
+        #[serde(default)]
+        odometry_scale: f64,
+        #[serde(default)]
+        odometry_bend_rad_m: f64,
     },
     FailSafe {
         t_ns: u64,
@@ -281,12 +287,14 @@ pub fn base_status_schema() -> Value {
 pub fn step_input_schema() -> Value {
     json!({
         "title": "flownav.StepInput",
-        "description": "What the per-frame pipeline consumed, for replay: kind \"step\" (frame seq at t_ns stepped after the frame at prev_t_ns, odometry v m/s and omega rad/s) or \"fail_safe\" (the pipeline was stopped and reset at t_ns, with the reason)",
+        "description": "What the per-frame pipeline consumed, for replay: kind \"step\" (frame seq at t_ns stepped after the frame at prev_t_ns, odometry v m/s and omega rad/s as the base reported them, and the learned turn scale error and bend in rad/m that the step took out of omega) or \"fail_safe\" (the pipeline was stopped and reset at t_ns, with the reason)",
         "type": "object",
         "properties": {
             "kind": {"type": "string", "enum": ["step", "fail_safe"]},
             "seq": {"type": "integer"}, "t_ns": {"type": "integer"}, "prev_t_ns": {"type": "integer"},
-            "v": {"type": "number"}, "omega": {"type": "number"}, "reason": {"type": "string"}},
+            "v": {"type": "number"}, "omega": {"type": "number"},
+            "odometry_scale": {"type": "number"}, "odometry_bend_rad_m": {"type": "number"},
+            "reason": {"type": "string"}},
         "required": ["kind", "t_ns"]
     })
 }

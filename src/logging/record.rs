@@ -162,6 +162,8 @@ pub fn record_step(h: &LogHandle, input_odometry: BodyVelocity, out: &StepOutput
         prev_t_ns: out.prev_t_ns,
         v: input_odometry.v,
         omega: input_odometry.omega,
+        odometry_scale: pipeline.applied_calibration()[0],
+        odometry_bend_rad_m: pipeline.applied_calibration()[1],
     });
     h.flow(t, &out.flow);
     h.perception(t, &out.perception, attributes_json(pipeline));

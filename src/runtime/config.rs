@@ -54,7 +54,7 @@ impl Default for BaseConfig {
             port: "/dev/ttyUSB0".into(),
             baud: 115_200,
             setpoint_rate_hz: 25.0,
-            watchdog_ms: 250,
+            watchdog_ms: 150,
         }
     }
 }
@@ -214,7 +214,7 @@ mod tests {
         .unwrap();
         cfg.validate().unwrap();
         assert_eq!(cfg.base.kind, BaseKind::Kobuki);
-        assert_eq!(cfg.base.watchdog_ms, 250);
+        assert_eq!(cfg.base.watchdog_ms, 150);
         assert_eq!(cfg.run.stall_ms, 100);
         assert!(!cfg.run.log);
         let err = |text: &str| toml::from_str::<Config>(text).unwrap().validate().unwrap_err().to_string();
