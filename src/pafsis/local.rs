@@ -369,6 +369,7 @@ pub struct Pafsis {
     /// Side walls of the current frame ([`Pafsis::observe_walls`]), taken by the next step.
     walls: Vec<WallSighting>,
     wall_fixes: WallFixes,
+    flow_fixes: u64,
 }
 
 /// How much the side walls have moved the estimate so far.
@@ -380,10 +381,6 @@ pub struct WallFixes {
     pub heading_rad: f64,
     /// Sum of the lateral corrections' sizes, m.
     pub lateral_m: f64,
-    /// Keyframe pairs whose flow corrected the heading ([`Pafsis::correct_heading`]), and the
-    /// sum of those corrections' sizes, rad.
-    pub flow_pairs: u64,
-    pub flow_heading_rad: f64,
 }
 
 impl Pafsis {
@@ -423,6 +420,7 @@ impl Pafsis {
             events: Vec::new(),
             walls: Vec::new(),
             wall_fixes: WallFixes::default(),
+            flow_fixes: 0,
         };
         me.start_leg(0);
         Ok(me)
@@ -521,8 +519,12 @@ impl Pafsis {
             return;
         }
         self.heading_rad = wrap_angle(self.heading_rad + fix_rad);
-        self.wall_fixes.flow_pairs += 1;
-        self.wall_fixes.flow_heading_rad += fix_rad.abs();
+        self.flow_fixes += 1;
+    }
+
+    /// How many keyframe pairs' flow corrected the heading so far.
+    pub fn flow_fixes(&self) -> u64 {
+        self.flow_fixes
     }
 
     /// Applies the side walls of the frame to the heading and the dead-reckoned offset.

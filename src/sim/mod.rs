@@ -702,7 +702,7 @@ pub async fn run_with_camera<C: Camera>(
         landmarks_missed,
         replans,
         wall_fixes: pipeline.pafsis().map_or(0, |p| p.wall_fixes().frames),
-        flow_yaw_fixes: pipeline.pafsis().map_or(0, |p| p.wall_fixes().flow_pairs),
+        flow_yaw_fixes: pipeline.pafsis().map_or(0, |p| p.flow_fixes()),
         odometry_scale: round4(pipeline.odometry_calibration().scale()),
         odometry_bend_rad_m: round4(pipeline.odometry_calibration().bend_rad_m()),
         mean_heading_error_deg: round3((heading_err_sum / heading_err_n.max(1) as f64).to_degrees()),
