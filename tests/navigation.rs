@@ -34,6 +34,9 @@ struct Walk {
     /// and the odometry is corrected by the errors learned from it.
     flow_yaw: bool,
     calibration: OdometryCalibration,
+    /// Something in the corridor at this x (a box) that OFFIS reads as this shape when it is
+    /// 0.3–0.8 m ahead.
+    phantom: Option<(f64, TpoShape)>,
     /// Largest distance from the corridor's centre line while following it, m.
     max_off_centre_m: f64,
     path_m: f64,
@@ -56,6 +59,7 @@ impl Walk {
             bend_rad_m: 0.0,
             flow_yaw: false,
             calibration: OdometryCalibration::default(),
+            phantom: None,
             max_off_centre_m: 0.0,
             path_m: 0.0,
         }
@@ -92,7 +96,13 @@ impl Walk {
         let dir = self.heading.cos().signum();
         let door = DOOR_X.iter().map(|&dx| (dx - self.x) * dir).filter(|d| (1.0..=4.0).contains(d)).reduce(f64::min);
         let wall = if dir > 0.0 { END_WALL_X - self.x } else { self.x };
+        let phantom =
+            self.phantom.map(|(x, shape)| (shape, (x - self.x) * dir)).filter(|(_, d)| (0.3..=0.8).contains(d));
         p.tpo = match door {
+            _ if phantom.is_some() => {
+                let (shape, d) = phantom.unwrap_or((TpoShape::None, 0.0));
+                Tpo { shape, confidence: 0.9, distance_m: Some(d) }
+            }
             Some(d) => Tpo { shape: TpoShape::Door, confidence: 0.9, distance_m: Some(d) },
             None if wall <= 5.0 => Tpo { shape: TpoShape::Wall, confidence: 0.9, distance_m: Some(wall) },
             None => Tpo { shape: TpoShape::Corridor, confidence: 0.9, distance_m: None },
@@ -287,9 +297,10 @@ fn missing_end_wall_relocalises_and_stops() {
     let (status, events) = walk.run(&mut nav, 120.0);
     assert_eq!(status, GoalStatus::Arrived);
     assert!(events.iter().any(|e| matches!(e, PafsisEvent::Replanned { from, .. } if from == "J1")), "{events:#?}");
-    // The end wall at x = 0 was never reported; the robot gave up after 150% of the 14 m leg
-    // (after the 0.5 m step from D3 to the centre line).
-    assert!((walk.path_m - 21.5).abs() < 0.3, "travelled {:.2} m", walk.path_m);
+    // The end wall at x = 0 was never reported; the robot gave up past the far edge of the
+    // map's tolerance window round the 14 m leg's end (0.2 m + 5 %: 0.9 m), after the 0.5 m
+    // step from D3 to the centre line.
+    assert!((walk.path_m - 15.4).abs() < 0.1, "travelled {:.2} m", walk.path_m);
 
     let mut nav = mission(&map, "D3:J1");
     let mut walk = Walk::new(15.0, 0.5, -90.0);
@@ -297,6 +308,28 @@ fn missing_end_wall_relocalises_and_stops() {
     assert_eq!(status, GoalStatus::Arrived);
     assert!(!events.iter().any(|e| matches!(e, PafsisEvent::Replanned { .. })));
     assert!((walk.x - 0.8).abs() < 0.1, "stops 0.8 m before the wall, at x = {:.2}", walk.x);
+}
+
+#[test]
+fn a_corner_or_wall_seen_far_from_where_the_map_ends_the_leg_does_not_end_it() {
+    let map = office();
+    // a box 0.6 m ahead at x = 11.5, 3 m into the 14 m leg to the end wall, read as a corner
+    // or a wall: outside the map's window round the leg's end (±0.9 m), so the robot goes on
+    for shape in [TpoShape::Corner, TpoShape::Wall] {
+        let mut nav = mission(&map, "D3:J1");
+        let mut walk = Walk { phantom: Some((11.5, shape)), ..Walk::new(15.0, 0.5, -90.0) };
+        let (status, events) = walk.run(&mut nav, 120.0);
+        assert_eq!(status, GoalStatus::Arrived);
+        assert!((walk.x - 0.8).abs() < 0.1, "{shape:?}: stops 0.8 m before the end wall, at x = {:.2}", walk.x);
+        assert!(!events.iter().any(|e| matches!(e, PafsisEvent::Replanned { .. })), "{events:#?}");
+    }
+    // the same box near the end of the leg ends it there: the end is where the map says,
+    // within its tolerance
+    let mut nav = mission(&map, "D3:J1");
+    let mut walk = Walk { phantom: Some((0.9, TpoShape::Corner)), ..Walk::new(15.0, 0.5, -90.0) };
+    let (status, _) = walk.run(&mut nav, 120.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!(walk.x > 0.9 && walk.x < 1.7, "ended at the corner seen 0.3–0.8 m ahead: x = {:.2}", walk.x);
 }
 
 #[test]

@@ -456,7 +456,7 @@ impl Offis {
         };
         // the decision over the last steps; a step without translation measures nothing
         self.filter.advance(since);
-        let filtered = if foe.is_some() { self.filter.push(&decision) } else { Filtered::default() };
+        let filtered = if foe.is_some() { self.filter.push(&decision) } else { self.filter.held() };
 
         // The obstacle: blocks clearly nearer than the TPO's surface in their bin, grouped into
         // 8-connected clusters; the nearest sizeable cluster, its cell by Fig. 6 on its blocks.

@@ -131,6 +131,16 @@ impl ClassFilter {
             self.entries.pop_front();
         }
         self.entries.push_back(Entry { classes: d.classes, turned_rad: 0.0, age_s: 0.0 });
+        self.held()
+    }
+
+    /// The decision over the steps still in the window, without adding one: for a step that
+    /// measures nothing (no translation), the evidence of the view the robot has not turned
+    /// away from yet still holds; `none` with 0 steps once it has all been forgotten.
+    pub fn held(&self) -> Filtered {
+        if self.entries.is_empty() {
+            return Filtered::default();
+        }
         let (mut sum, mut weight, mut w) = ([0.0; 5], 0.0, 1.0);
         for e in self.entries.iter().rev() {
             for (s, c) in sum.iter_mut().zip(e.classes) {
@@ -169,6 +179,31 @@ mod tests {
             f.advance(FRAME);
             f.push(&evidence(shape, m, 0.0));
         }
+    }
+
+    #[test]
+    fn a_step_without_translation_holds_the_views_evidence_until_the_robot_turns_away() {
+        let mut f = filter();
+        drive(&mut f, 5, TpoShape::Corridor, 0.9);
+        // a pause, then a turn on the spot: nothing measured, the corridor still in view
+        f.advance(FRAME);
+        let held = f.held();
+        assert_eq!((held.shape, held.steps), (TpoShape::Corridor, 5));
+        assert!((held.confidence - 0.9).abs() < 1e-12);
+        f.advance(Motion { yaw_rad: 0.2, dt: 1.0 / 30.0 });
+        assert_eq!(f.held().shape, TpoShape::Corridor, "0.2 rad is inside max_turn_rad");
+        f.advance(Motion { yaw_rad: -0.1, dt: 1.0 / 30.0 });
+        assert_eq!(f.held(), Filtered::default(), "0.3 rad turned in all: the corridor is forgotten");
+        // standing still: forgotten with age
+        drive(&mut f, 3, TpoShape::Wall, 0.8);
+        for _ in 0..29 {
+            f.advance(FRAME);
+        }
+        assert_eq!(f.held().shape, TpoShape::Wall);
+        for _ in 0..2 {
+            f.advance(FRAME);
+        }
+        assert_eq!(f.held().steps, 0, "older than max_age_s");
     }
 
     #[test]

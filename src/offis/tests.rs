@@ -353,9 +353,10 @@ fn step_filtered_holds_the_class_through_one_odd_pair_and_forgets_it_after_a_tur
     assert_eq!((a.decision.shape, a.filtered.steps), (TpoShape::Wall, 5), "this pair alone says wall");
     assert_eq!(p.tpo.shape, TpoShape::Door, "one odd pair does not flip the class: {:?}", a.filtered);
     assert!((p.tpo.distance_m.unwrap() - 2.45).abs() < 0.02, "the distance is this pair's wall: {:?}", p.tpo);
-    // standing still measures nothing: none, and the window is kept
+    // standing still measures nothing and adds nothing: the evidence of the view still holds
     let still = offis.step_filtered(&door, BodyVelocity::ZERO, DT, &c, ahead).unwrap();
-    assert_eq!((still.tpo.shape, offis.attributes().filtered.steps), (TpoShape::None, 0));
+    assert_eq!((still.tpo.shape, offis.attributes().filtered.steps), (TpoShape::Door, 5));
+    assert_eq!(offis.attributes().decision.shape, TpoShape::None, "the pair alone measured nothing");
     assert_eq!(offis.step_filtered(&door, vel, DT, &c, ahead).unwrap().tpo.shape, TpoShape::Door);
     assert_eq!(offis.attributes().filtered.steps, 6);
     // after a turn of 0.3 rad the wall in view decides alone

@@ -5,9 +5,10 @@
 //! by recognised landmarks (OFFIS door sightings re-localise the robot along the corridor; a
 //! corner or wall seen ahead ends a corridor), and outputs the goal-oriented velocity and angle.
 //!
-//! When a landmark does not show up where expected (the robot travelled `miss_factor` × the
-//! leg's length without seeing the corner/wall that ends it), the planner re-localises to the
-//! place the leg leads to and replans from there; after `max_replans` it gives up (stop).
+//! When a landmark does not show up where expected (the robot travelled past the map's
+//! tolerance window around the leg's end, or `miss_factor` × the leg's length, without seeing
+//! the corner/wall that ends it), the planner re-localises to the place the leg leads to and
+//! replans from there; after `max_replans` it gives up (stop).
 //!
 //! Pure and deterministic: no clocks, no I/O; the same inputs give the same outputs.
 
@@ -359,6 +360,9 @@ pub struct Pafsis {
     hold_line_until_m: f64,
     /// The TPO shape seen in the last consecutive frames, and how many.
     streak: (TpoShape, u32),
+    /// Consecutive frames in which a corner or a wall was seen ahead, within the stop distance
+    /// (the end of a corner- or wall-ended corridor).
+    end_streak: u32,
     door_sighting_reported: bool,
     /// Expected position of the door matched in the current streak of door frames.
     tracking: Option<f64>,
@@ -412,6 +416,7 @@ impl Pafsis {
             speed_m_s: 0.0,
             hold_line_until_m: 0.0,
             streak: (TpoShape::None, 0),
+            end_streak: 0,
             door_sighting_reported: false,
             tracking: None,
             last_door_distance: None,
@@ -628,7 +633,7 @@ impl Pafsis {
             if self.status != GoalStatus::Active {
                 break;
             }
-            if !self.leg_done(perception) {
+            if !self.leg_done() {
                 break;
             }
         }
@@ -691,6 +696,9 @@ impl Pafsis {
             self.streak = (shape, 1);
             self.door_sighting_reported = false;
         }
+        let end_ahead = matches!(shape, TpoShape::Corner | TpoShape::Wall)
+            && p.tpo.distance_m.is_some_and(|d| d <= self.params.stop_distance_m);
+        self.end_streak = if end_ahead { self.end_streak.saturating_add(1) } else { 0 };
         if shape != TpoShape::Door {
             self.tracking = None;
             self.last_door_distance = None;
@@ -775,7 +783,7 @@ impl Pafsis {
 
     /// Checks whether the current leg is complete; if so moves to the next (or arrives).
     /// Returns whether a leg was completed.
-    fn leg_done(&mut self, p: &Perception) -> bool {
+    fn leg_done(&mut self) -> bool {
         let Some(leg) = self.legs.get(self.leg) else {
             self.arrive();
             return false;
@@ -805,11 +813,17 @@ impl Pafsis {
                         done
                     }
                     LegEnd::Corner | LegEnd::Wall => {
-                        let want = if *end == LegEnd::Corner { TpoShape::Corner } else { TpoShape::Wall };
-                        let seen = self.streak.0 == want
-                            && self.streak.1 >= self.params.landmark_min_frames
-                            && p.tpo.distance_m.is_some_and(|d| d <= self.params.stop_distance_m);
-                        if !seen && self.along_m >= self.params.miss_factor * length_m {
+                        // The corridor's end: a corner or a wall ahead within the stop distance
+                        // (at an L's corner the view holds the end wall and the corner beside the
+                        // opening, and OFFIS may name either), counted only where the map puts
+                        // the end, within its tolerance: a box in the corridor that looks like
+                        // a corner must not end the leg halfway. Past the far edge of that
+                        // window the end has gone unseen.
+                        let window = self.map.tolerance.window_m(*length_m);
+                        let seen =
+                            self.end_streak >= self.params.landmark_min_frames && self.along_m >= length_m - window;
+                        let missed_at = (self.params.miss_factor * length_m).min(length_m + window);
+                        if !seen && self.along_m >= missed_at {
                             let what = format!("{:?} at the end of leg {}", end, self.leg).to_lowercase();
                             self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
                             self.replan();
@@ -922,8 +936,9 @@ impl Pafsis {
                 let remaining = match end {
                     LegEnd::Distance | LegEnd::Door => length_m - self.along_m,
                     LegEnd::Corner | LegEnd::Wall => {
-                        let want = if *end == LegEnd::Corner { TpoShape::Corner } else { TpoShape::Wall };
-                        match p.tpo.distance_m.filter(|_| p.tpo.shape == want) {
+                        let end_ahead = matches!(p.tpo.shape, TpoShape::Corner | TpoShape::Wall)
+                            && self.along_m >= length_m - self.map.tolerance.window_m(*length_m);
+                        match p.tpo.distance_m.filter(|_| end_ahead) {
                             Some(d) => d - self.params.stop_distance_m,
                             None => (length_m - self.along_m).max(self.params.slow_radius_m),
                         }

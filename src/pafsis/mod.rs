@@ -46,7 +46,8 @@ pub struct PafsisParams {
     pub landmark_gate_m: f64,
     /// Door sightings farther than this are not used for position correction, m.
     pub door_max_range_m: f64,
-    /// A landmark that ends a leg is declared missing after this multiple of the leg's length.
+    /// A landmark that ends a leg is declared missing after this multiple of the leg's length,
+    /// or past the far edge of the map's tolerance window round the leg's end if that comes first.
     pub miss_factor: f64,
     /// Replans allowed before the mission fails.
     pub max_replans: u32,

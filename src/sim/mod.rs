@@ -597,6 +597,14 @@ pub async fn run_with_camera<C: Camera>(
                 lane.map_or(f64::NAN, |l| l.angle_rad),
                 pipeline.pafsis().and_then(|p| p.position_m()).map(|[x, y]| [(x * 1e3).round() / 1e3, (y * 1e3).round() / 1e3])
             );
+            let a = pipeline.offis().attributes();
+            tracing::trace!(
+                target: "flownav::sim::frames",
+                "offis t={t_s:.3} pair_dt={:.3} foe={} bins_pts={} raw={:?} raw_conf={:.2} groups={:?} filt={:?} filt_steps={} filt_classes={:?} valid={} outliers={} feat={:?}",
+                o.dt, a.foe.is_some(), a.bins.iter().filter(|b| b.point.is_some()).count(), a.decision.shape, a.decision.confidence,
+                a.decision.groups.map(|g| (g * 100.0).round() / 100.0), a.filtered.shape, a.filtered.steps,
+                a.filtered.classes.map(|g| (g * 100.0).round() / 100.0), a.valid, a.outliers, a.features
+            );
         }
         if tracing::enabled!(target: "flownav::sim::cells", tracing::Level::TRACE) {
             // the obstacle memory's occupied cells and this step's surface points within 1.5 m,
