@@ -4,7 +4,7 @@
 use flownav::odometry_calibration::OdometryCalibration;
 use flownav::pafsis::map::wrap_angle;
 use flownav::pafsis::{GoalStatus, LegKind, Mission, Pafsis, PafsisEvent, PafsisParams, TopoMap, WallSighting};
-use flownav::perception::{Perception, Tpo, TpoShape};
+use flownav::perception::{Obstacle, Perception, Tpo, TpoShape};
 use hal::BodyVelocity;
 
 fn office() -> TopoMap {
@@ -34,6 +34,9 @@ struct Walk {
     /// and the odometry is corrected by the errors learned from it.
     flow_yaw: bool,
     calibration: OdometryCalibration,
+    /// OFFIS names no TPO but reports the end wall as the nearest obstacle when it is within
+    /// 1 m ahead (close up, the wall fills the view).
+    end_wall_as_obstacle: bool,
     /// Something in the corridor at this x (a box) that OFFIS reads as this shape when it is
     /// 0.3–0.8 m ahead.
     phantom: Option<(f64, TpoShape)>,
@@ -60,6 +63,7 @@ impl Walk {
             flow_yaw: false,
             calibration: OdometryCalibration::default(),
             phantom: None,
+            end_wall_as_obstacle: false,
             max_off_centre_m: 0.0,
             path_m: 0.0,
         }
@@ -90,6 +94,13 @@ impl Walk {
     fn perceive(&self) -> Perception {
         let mut p = Perception::default();
         let along_corridor = self.heading.sin().abs() < 0.2 && self.y.abs() < 1.0;
+        if self.end_wall_as_obstacle && along_corridor {
+            let dir = self.heading.cos().signum();
+            let wall = if dir > 0.0 { END_WALL_X - self.x } else { self.x };
+            if wall <= 1.0 {
+                p.obstacle = Obstacle { present: true, distance_m: Some(wall), bearing_rad: Some(0.0), cell: None };
+            }
+        }
         if !self.landmarks || !along_corridor {
             return p;
         }
@@ -307,6 +318,14 @@ fn missing_end_wall_relocalises_and_stops() {
     let (status, events) = walk.run(&mut nav, 120.0);
     assert_eq!(status, GoalStatus::Arrived);
     assert!(!events.iter().any(|e| matches!(e, PafsisEvent::Replanned { .. })));
+    assert!((walk.x - 0.8).abs() < 0.1, "stops 0.8 m before the wall, at x = {:.2}", walk.x);
+
+    // the end wall seen only as the nearest obstacle ahead ends the leg as well
+    let mut nav = mission(&map, "D3:J1");
+    let mut walk = Walk { landmarks: false, end_wall_as_obstacle: true, ..Walk::new(15.0, 0.5, -90.0) };
+    let (status, events) = walk.run(&mut nav, 120.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    assert!(!events.iter().any(|e| matches!(e, PafsisEvent::Replanned { .. })), "{events:#?}");
     assert!((walk.x - 0.8).abs() < 0.1, "stops 0.8 m before the wall, at x = {:.2}", walk.x);
 }
 

@@ -26,6 +26,11 @@ use std::fmt;
 const DRIFT_MIN_SPEED_M_S: f64 = 0.1;
 const NEW_DOOR_JUMP_M: f64 = 0.5;
 
+/// Something solid this near the heading, within `stop_distance_m`, is the end of a corner- or
+/// wall-ended corridor where the map puts it (the end wall close up often reads as the nearest
+/// obstacle rather than a TPO), rad.
+const END_AHEAD_MAX_BEARING_RAD: f64 = 0.26;
+
 /// Obstacles seen nearer than this pause the cross-track correction
 /// (`PafsisParams::cross_track_hold_m`), m.
 const HOLD_LINE_RANGE_M: f64 = 1.0;
@@ -360,8 +365,8 @@ pub struct Pafsis {
     hold_line_until_m: f64,
     /// The TPO shape seen in the last consecutive frames, and how many.
     streak: (TpoShape, u32),
-    /// Consecutive frames in which a corner or a wall was seen ahead, within the stop distance
-    /// (the end of a corner- or wall-ended corridor).
+    /// Consecutive frames in which a corner, a wall or something solid was seen ahead within the
+    /// stop distance (the end of a corner- or wall-ended corridor).
     end_streak: u32,
     door_sighting_reported: bool,
     /// Expected position of the door matched in the current streak of door frames.
@@ -696,8 +701,12 @@ impl Pafsis {
             self.streak = (shape, 1);
             self.door_sighting_reported = false;
         }
-        let end_ahead = matches!(shape, TpoShape::Corner | TpoShape::Wall)
-            && p.tpo.distance_m.is_some_and(|d| d <= self.params.stop_distance_m);
+        let stop = self.params.stop_distance_m;
+        let end_ahead = (matches!(shape, TpoShape::Corner | TpoShape::Wall)
+            && p.tpo.distance_m.is_some_and(|d| d <= stop))
+            || (p.obstacle.present
+                && p.obstacle.distance_m.is_some_and(|d| d <= stop)
+                && p.obstacle.bearing_rad.is_some_and(|b| b.abs() <= END_AHEAD_MAX_BEARING_RAD));
         self.end_streak = if end_ahead { self.end_streak.saturating_add(1) } else { 0 };
         if shape != TpoShape::Door {
             self.tracking = None;
@@ -813,9 +822,10 @@ impl Pafsis {
                         done
                     }
                     LegEnd::Corner | LegEnd::Wall => {
-                        // The corridor's end: a corner or a wall ahead within the stop distance
-                        // (at an L's corner the view holds the end wall and the corner beside the
-                        // opening, and OFFIS may name either), counted only where the map puts
+                        // The corridor's end: a corner, a wall or something solid ahead within
+                        // the stop distance (at an L's corner the view holds the end wall and the
+                        // corner beside the opening, and OFFIS may name either, or neither when
+                        // the wall fills the view), counted only where the map puts
                         // the end, within its tolerance: a box in the corridor that looks like
                         // a corner must not end the leg halfway. Past the far edge of that
                         // window the end has gone unseen.
