@@ -37,8 +37,9 @@
 #
 # What it runs:
 #   1. the flow_gpu test binary, --test-threads 8 (parity of both GPU paths with the CPU engine,
-#      bit-identical), once as built and once per FLOWNAV_GPU_MATCH_WG in $CHECK_WGS (other
-#      workgroup sizes of the per-block kernel; default "256 1024").
+#      bit-identical; it prints the adapter the tests ran on), once as built and once per
+#      FLOWNAV_GPU_MATCH_WG in $CHECK_WGS (other workgroup sizes of the per-block kernel; default
+#      "256 1024").
 #      `cli_gpu_backend_runs_or_names_what_to_install` is skipped: it runs the `flownav` binary at
 #      the absolute path baked in at build time, which does not exist there.
 #   2. the benchmark (criterion, short: warm-up 1 s, measurement 2 s), groups
@@ -49,8 +50,9 @@
 #      that have it, the host's split of a waiting `compute` ("host split": submission, then the
 #      wait and readback).
 #   3. this build's default grid again under each setting in $VARIANTS (environment
-#      assignments separated by ';', e.g. the wait, workgroup and upload switches of
-#      docs/gpu.md), to see what each part is worth on this card.
+#      assignments separated by ';'; default: the blocking wait, and 256 and 1024 invocations
+#      per workgroup of the per-block kernel, docs/gpu.md), to see what each part is worth on
+#      this card. VARIANTS= skips them.
 #   4. `flownav flow A B --repeat 300 --flow-backend gpu --json` on data/graf_shift_512 and
 #      data/motorcycle_stereo, baseline first: the `timing` object (wall time per pair of a
 #      waiting `compute`, min/median/p90 ms).
@@ -66,7 +68,7 @@ export FLOWNAV_DATA=${FLOWNAV_DATA:-$PWD/data}
 export RUST_BACKTRACE=1
 export CRITERION_HOME=${CRITERION_HOME:-/tmp/flownav-criterion}
 CHECK_WGS=${CHECK_WGS-"256 1024"}
-VARIANTS=${VARIANTS-"FLOWNAV_GPU_WAIT=block;FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024;FLOWNAV_GPU_SPLIT_UPLOAD=0"}
+VARIANTS=${VARIANTS-"FLOWNAV_GPU_WAIT=block;FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024"}
 status=0
 
 log() { echo "== $*" | tee -a "$OUTDIR/summary.txt"; }
@@ -81,11 +83,12 @@ command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,m
 for wg in default $CHECK_WGS; do
     if [ "$wg" = default ]; then sw="-u FLOWNAV_GPU_MATCH_WG"; else sw="FLOWNAV_GPU_MATCH_WG=$wg"; fi
     # shellcheck disable=SC2086
-    env $sw timeout 60 "$BIN/flow_gpu_test" --test-threads 8 --skip cli_gpu_backend_runs_or_names_what_to_install \
+    env $sw timeout 60 "$BIN/flow_gpu_test" --test-threads 8 --nocapture --skip cli_gpu_backend_runs_or_names_what_to_install \
         >"$OUTDIR/tests_$wg.txt" 2>&1
     rc=$?
     log "flow_gpu tests (env $sw): exit $rc ($(grep -E '^test result' "$OUTDIR/tests_$wg.txt" | tail -1))"
-    grep -E '^GPU flow tests on|FAILED|panicked' "$OUTDIR/tests_$wg.txt" | head -20 | tee -a "$OUTDIR/summary.txt"
+    grep -E '^GPU flow tests on|SKIPPED|FAILED|panicked' "$OUTDIR/tests_$wg.txt" | sort | uniq -c | head -20 \
+        | tee -a "$OUTDIR/summary.txt"
     [ "$rc" = 0 ] || status=1
 done
 

@@ -68,10 +68,6 @@ pub struct GpuFlow {
     /// software rasteriser the polling thread would take a core from the rasteriser's own);
     /// `FLOWNAV_GPU_WAIT=block` turns it off.
     spin: bool,
-    /// Whether a pair whose frames are both new is submitted in two parts, frame A's upload and
-    /// preprocessing first, so that the GPU works on them while frame B is copied
-    /// (`FLOWNAV_GPU_SPLIT_UPLOAD=0` turns it off).
-    split_upload: bool,
     /// Per-pass GPU timing, when on (`set_pass_timing`, `FLOWNAV_GPU_TIMESTAMPS=1`) and the
     /// device has timestamp queries.
     timing: Option<PassTiming>,
@@ -111,7 +107,6 @@ impl GpuFlow {
             },
             match_wg: std::env::var("FLOWNAV_GPU_MATCH_WG").ok().and_then(|v| v.parse().ok()),
             spin,
-            split_upload: std::env::var("FLOWNAV_GPU_SPLIT_UPLOAD").as_deref() != Ok("0"),
             timing: None,
         }
         .with_pass_timing(std::env::var("FLOWNAV_GPU_TIMESTAMPS").as_deref() == Ok("1")))
@@ -275,8 +270,7 @@ impl GpuFlow {
         self.reused_a = !upload_a;
         let ctx = Arc::clone(&self.ctx);
         let sized = self.sized.as_ref().expect("built above");
-        let new_encoder = || ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("flow") });
-        let mut enc = new_encoder();
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("flow") });
         // One compute pass per stage (preprocessing of each new frame, cost volume, matching per
         // level), each with a begin and an end timestamp when pass timing is on and free.
         let timing = self.timing.as_mut().filter(|t| !t.busy);
@@ -322,10 +316,6 @@ impl GpuFlow {
             upload(&ctx.queue, &sized.slots[slot_a][0].raw, a, sized.dims[0].2, &mut self.pack);
             if prep {
                 prep_frame(&mut begin(&mut enc, "prep A"), slot_a);
-                if self.split_upload {
-                    // The GPU copies and preprocesses frame A while the CPU copies frame B.
-                    ctx.queue.submit([std::mem::replace(&mut enc, new_encoder()).finish()]);
-                }
             }
         }
         upload(&ctx.queue, &sized.slots[slot_b][0].raw, b, sized.dims[0].2, &mut self.pack);
