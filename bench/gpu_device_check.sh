@@ -25,10 +25,11 @@
 # .devbin/base (flow_gpu_bench and flownav are enough). .devbin/ must be ignored by git (list
 # /.devbin/ in .git/info/exclude); it does not travel with the working tree by itself: name it in
 # the device tool's `carry` (~30–50 MB stripped with a baseline, under the 64 MiB limit). Do not
-# commit it. data/graf_shift_512 and data/motorcycle_stereo (tracked) are the inputs. If the
-# machine has no Vulkan loader (`ldconfig -p | grep libvulkan` prints nothing), unpack
-# libvulkan1's .deb there first (docs of the device tool). Then on the device machine, from the
-# repository root:
+# commit it. data/graf_shift_512 and data/motorcycle_stereo (tracked) are the inputs. The lent
+# NVIDIA machines have the driver's ICD but no Vulkan loader: carry the .debs of libvulkan1 and
+# of glvnd (libglvnd0 libegl1 libgl1 libglx0 libopengl0 libgles2: the ICD, libGLX_nvidia.so.0,
+# fails to load without them, and wgpu then finds no adapter) and `dpkg -x` each into / and run
+# `ldconfig` before this script. Then on the device machine, from the repository root:
 #
 #   bench/gpu_device_check.sh [BINDIR [BASEDIR]]   # BINDIR defaults to .devbin; results in $OUT if set
 #
