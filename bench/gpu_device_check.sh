@@ -1,44 +1,66 @@
 #!/bin/sh
-# GPU device check for the dense fast path (cost volume, docs/gpu.md "Dense mode"): parity tests
-# and a short benchmark of both GPU paths, from prebuilt binaries, on a machine without a Rust
-# toolchain or network (x86-64 Linux with a Vulkan driver). Takes about 1.5–2 minutes on an
-# H100/H200; everything is capped by `timeout` so the whole run stays under 3 minutes.
+# GPU device check (docs/gpu.md "Measurements"): parity tests, the 720p benchmark of the GPU
+# engine (default grid and dense) with per-pass GPU times and the host's split of a waiting
+# `compute`, and `flownav flow --repeat` on the reference pairs, from prebuilt binaries, on a
+# machine without a Rust toolchain or network (x86-64 Linux with a Vulkan driver). Optionally the
+# same benchmark and `flownav flow` from a baseline build in the same run, so that before and
+# after are measured on the same card. Takes about 2–4 minutes on an H100/H200; every step is
+# capped by `timeout`.
 #
-# Build the binaries HERE (the build machine), from the repository root:
+# Build the binaries HERE (the build machine), from the repository root. One release build of
+# the library serves the three binaries (`--benches` builds the criterion benchmark with the
+# release profile; run with `--bench` it benchmarks as `cargo bench` does):
 #
 #   exe() { sed -n 's/.*"executable":"\([^"]*\/deps\/flow_gpu-[^"]*\)".*/\1/p'; }
-#   T=$(cargo test --release --test flow_gpu --no-run --message-format=json | exe)
-#   B=$(cargo bench --bench flow_gpu --no-run --message-format=json | exe)
-#   mkdir -p .devbin && cp "$T" .devbin/flow_gpu_test && cp "$B" .devbin/flow_gpu_bench
-#   strip .devbin/flow_gpu_test .devbin/flow_gpu_bench   # ~95 MB each with line tables, ~8 MB stripped
+#   cargo build --release --bin flownav
+#   cargo test --release --test flow_gpu --benches --no-run --message-format=json | exe > /tmp/exes
+#   mkdir -p .devbin && cp target/release/flownav .devbin/flownav
+#   for f in $(cat /tmp/exes); do
+#       if "$f" --list 2>/dev/null | grep -q ': benchmark'; then cp "$f" .devbin/flow_gpu_bench;
+#       else cp "$f" .devbin/flow_gpu_test; fi
+#   done
+#   strip .devbin/*        # ~100 MB each with line tables, ~8–10 MB stripped
 #
-# (Both JSON streams also name target/release/flownav; `exe` keeps only the flow_gpu binary.)
-# To try the script here on lavapipe: WGPU_BACKEND=vulkan bench/gpu_device_check.sh (the bench
-# skips gpu/dense on a software adapter).
-# .devbin/ is ignored (this repository's .git/info/exclude lists /.devbin/), so it does not
-# travel with the working tree by itself: name it in the device tool's `carry` ([".devbin"],
-# ~17 MB stripped, under the 64 MiB limit). Do not commit it. data/graf_shift_512 (tracked) is
-# the benchmark's input. Then on the device machine, from the repository root:
+# For a baseline, the same from another checkout (e.g. `git worktree add ../base COMMIT`) into
+# .devbin/base (flow_gpu_bench and flownav are enough). .devbin/ must be ignored by git (list
+# /.devbin/ in .git/info/exclude); it does not travel with the working tree by itself: name it in
+# the device tool's `carry` (~30–50 MB stripped with a baseline, under the 64 MiB limit). Do not
+# commit it. data/graf_shift_512 and data/motorcycle_stereo (tracked) are the inputs. The lent
+# NVIDIA machines have the driver's ICD but no Vulkan loader: carry the .debs of libvulkan1 and
+# of glvnd (libglvnd0 libegl1 libgl1 libglx0 libopengl0 libgles2: the ICD, libGLX_nvidia.so.0,
+# fails to load without them, and wgpu then finds no adapter) and `dpkg -x` each into / and run
+# `ldconfig` before this script. Then on the device machine, from the repository root:
 #
-#   bench/gpu_device_check.sh [BINDIR]      # BINDIR defaults to .devbin; results in $OUT if set
+#   bench/gpu_device_check.sh [BINDIR [BASEDIR]]   # BINDIR defaults to .devbin; results in $OUT if set
+#
+# To try it here on lavapipe: WGPU_BACKEND=vulkan bench/gpu_device_check.sh (the benchmark skips
+# gpu/dense on a software adapter).
 #
 # What it runs:
-#   1. the flow_gpu test binary, --test-threads 4 (parity of both GPU paths with the CPU engine,
-#      bit-identical). `cli_gpu_backend_runs_or_names_what_to_install` is skipped: it runs the
-#      `flownav` binary at the absolute path baked in at build time, which does not exist there.
-#   2. the flow_gpu benchmark (criterion, short: warm-up 1 s, measurement 2 s), groups
-#      gpu/{default,dense} and gpu_stream_wait/{default,dense}, once with the cost volume on
-#      where it applies (the default) and once with FLOWNAV_GPU_COST_VOLUME=0 (the per-block
-#      kernel only). The benchmark first checks that the GPU field equals the CPU engine's field
-#      exactly on its 720p frames (it panics otherwise: that is how a parity failure shows).
-#      After each gpu/… benchmark it prints the mean GPU time of each compute pass over 50 more
-#      pairs (timestamp queries: "pass times (ms, mean of 50): prep …, costvol …, reduce …,
-#      total …"; "match L0" for the per-block kernel), also for each forced tile shape
-#      (FLOWNAV_BENCH_CV_TILES: the planner's 16x16 g6 forced, 16x16 g5 (the old fastest),
-#      16x8 g6, 8x8 g11 (the old planner's choice), 8x4 g33).
+#   1. the flow_gpu test binary, --test-threads 8 (parity of both GPU paths with the CPU engine,
+#      bit-identical; it prints the adapter the tests ran on), once as built and once per
+#      FLOWNAV_GPU_MATCH_WG in $CHECK_WGS (other workgroup sizes of the per-block kernel; default
+#      "256 1024").
+#      `cli_gpu_backend_runs_or_names_what_to_install` is skipped: it runs the `flownav` binary at
+#      the absolute path baked in at build time, which does not exist there.
+#   2. the benchmark (criterion, short: warm-up 1 s, measurement 2 s), groups
+#      gpu/{default,dense}, gpu_stream_wait/… and gpu_stream/…: the baseline's first (if given),
+#      then this build's. The benchmark first checks that the GPU field equals the CPU engine's
+#      exactly on its 720p frames (it panics otherwise). After each gpu/… benchmark it prints
+#      the mean GPU time of each compute pass over 50 more pairs ("pass times") and, in builds
+#      that have it, the host's split of a waiting `compute` ("host split": submission, then the
+#      wait and readback).
+#   3. this build's default grid again under each setting in $VARIANTS (environment
+#      assignments separated by ';'; default: the blocking wait, and 256 and 1024 invocations
+#      per workgroup of the per-block kernel, docs/gpu.md), to see what each part is worth on
+#      this card. VARIANTS= skips them.
+#   4. `flownav flow A B --repeat 300 --flow-backend gpu --json` on data/graf_shift_512 and
+#      data/motorcycle_stereo, baseline first: the `timing` object (wall time per pair of a
+#      waiting `compute`, min/median/p90 ms).
 set -u
 cd "$(dirname "$0")/.."
 BIN=${1:-.devbin}
+BASE=${2:-}
 OUTDIR=${OUT:-$PWD/.devout}
 mkdir -p "$OUTDIR"
 export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp/xdg-$(id -u)}
@@ -46,36 +68,71 @@ mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
 export FLOWNAV_DATA=${FLOWNAV_DATA:-$PWD/data}
 export RUST_BACKTRACE=1
 export CRITERION_HOME=${CRITERION_HOME:-/tmp/flownav-criterion}
+CHECK_WGS=${CHECK_WGS-"256 1024"}
+VARIANTS=${VARIANTS-"FLOWNAV_GPU_WAIT=block;FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024"}
 status=0
 
 log() { echo "== $*" | tee -a "$OUTDIR/summary.txt"; }
+keep() { grep -E '^GPU:|cost volume|identical|differ|panicked|pass times|host split|^flow_gpu_720p/|time:' "$1" \
+    | grep -v -E 'change:|Performance|No change' | tee -a "$OUTDIR/summary.txt"; }
 
-log "$(date -u +%FT%TZ) device check in $PWD, binaries in $BIN"
+log "$(date -u +%FT%TZ) device check in $PWD, binaries in $BIN${BASE:+, baseline in $BASE}"
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader \
     | tee -a "$OUTDIR/summary.txt"
 
-# 1. parity tests
-timeout 50 "$BIN/flow_gpu_test" --test-threads 4 --skip cli_gpu_backend_runs_or_names_what_to_install \
-    >"$OUTDIR/tests.txt" 2>&1
-rc=$?
-log "flow_gpu tests: exit $rc ($(grep -E '^test result' "$OUTDIR/tests.txt" | tail -1))"
-grep -E '^GPU flow tests on|FAILED|panicked' "$OUTDIR/tests.txt" | head -40 | tee -a "$OUTDIR/summary.txt"
-[ "$rc" = 0 ] || status=1
-
-# 2. benchmarks, new path (default) then old path
-# (the new path also times forced tile shapes of the cost volume: FLOWNAV_BENCH_CV_TILES)
-FILTER='flow_gpu_720p/gpu(_stream_wait)?/(default|dense)(_tile_.*)?$'
-TILES=${FLOWNAV_BENCH_CV_TILES-'16,8,6;16,16,6;16,16,5;8,8,11;8,4,33'}  # the planner's 720p choice first
-for mode in new old; do
-    if [ "$mode" = old ]; then sw="FLOWNAV_GPU_COST_VOLUME=0"; lim=40; else sw="-u FLOWNAV_GPU_COST_VOLUME FLOWNAV_BENCH_CV_TILES=$TILES"; lim=90; fi
+# 1. parity tests, as built and with other workgroup sizes of the per-block kernel
+for wg in default $CHECK_WGS; do
+    if [ "$wg" = default ]; then sw="-u FLOWNAV_GPU_MATCH_WG"; else sw="FLOWNAV_GPU_MATCH_WG=$wg"; fi
     # shellcheck disable=SC2086
-    env $sw timeout $lim "$BIN/flow_gpu_bench" --bench --warm-up-time 1 --measurement-time 2 \
-        --noplot "$FILTER" >"$OUTDIR/bench_$mode.txt" 2>&1
+    env $sw timeout 60 "$BIN/flow_gpu_test" --test-threads 8 --nocapture --skip cli_gpu_backend_runs_or_names_what_to_install \
+        >"$OUTDIR/tests_$wg.txt" 2>&1
     rc=$?
-    log "bench ($mode path: env $sw): exit $rc"
-    grep -E '^GPU:|cost volume|identical|differ|panicked|tile|pass times|^flow_gpu_720p/|time:' "$OUTDIR/bench_$mode.txt" \
+    log "flow_gpu tests (env $sw): exit $rc ($(grep -E '^test result' "$OUTDIR/tests_$wg.txt" | tail -1))"
+    grep -E '^GPU flow tests on|SKIPPED|FAILED|panicked' "$OUTDIR/tests_$wg.txt" | sort | uniq -c | head -20 \
         | tee -a "$OUTDIR/summary.txt"
     [ "$rc" = 0 ] || status=1
+done
+
+# 2. benchmarks: baseline, then this build
+FILTER='flow_gpu_720p/gpu(_stream_wait|_stream)?/(default|dense)$'
+bench() { # NAME BINARY FILTER [ENV...]
+    name=$1 exe=$2 filter=$3
+    shift 3
+    env "$@" timeout "$limit" "$exe" --bench --warm-up-time 1 --measurement-time 2 --noplot "$filter" \
+        >"$OUTDIR/bench_$name.txt" 2>&1
+    rc=$?
+    log "bench $name (env $*): exit $rc"
+    keep "$OUTDIR/bench_$name.txt"
+    [ "$rc" = 0 ] || status=1
+}
+limit=90
+[ -n "$BASE" ] && bench base "$BASE/flow_gpu_bench" "$FILTER" -u FLOWNAV_GPU_COST_VOLUME
+bench new "$BIN/flow_gpu_bench" "$FILTER" -u FLOWNAV_GPU_COST_VOLUME
+
+# 3. this build's default grid under each variant
+i=0
+limit=45
+oldifs=$IFS
+IFS=';'
+for v in $VARIANTS; do
+    IFS=$oldifs
+    [ -n "$v" ] || continue
+    i=$((i + 1))
+    bench "variant$i" "$BIN/flow_gpu_bench" 'flow_gpu_720p/gpu(_stream_wait|_stream)?/default$' "$v"
+done
+IFS=$oldifs
+
+# 4. flownav flow --repeat on the reference pairs
+for pair in graf_shift_512 motorcycle_stereo; do
+    for build in ${BASE:+base} new; do
+        if [ "$build" = base ]; then exe=$BASE/flownav; else exe=$BIN/flownav; fi
+        [ -x "$exe" ] || continue
+        timeout 30 "$exe" flow "data/$pair/0000.png" "data/$pair/0001.png" --repeat 300 --flow-backend gpu --json \
+            >"$OUTDIR/flow_${pair}_$build.json" 2>"$OUTDIR/flow_${pair}_$build.err"
+        rc=$?
+        log "flownav flow $pair ($build): exit $rc $(grep -o '"timing":{[^}]*}' "$OUTDIR/flow_${pair}_$build.json")"
+        [ "$rc" = 0 ] || { status=1; tail -3 "$OUTDIR/flow_${pair}_$build.err" | tee -a "$OUTDIR/summary.txt"; }
+    done
 done
 log "done, status $status"
 exit $status

@@ -27,7 +27,7 @@ use flownav::flow::{FlowEngine, FlowParams};
 use hal::LumaImage;
 use std::hint::black_box;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 fn graf() -> LumaImage {
     let path = flownav::frames::reference_data_dir().join("graf_shift_512/0000.png");
@@ -68,6 +68,28 @@ fn pass_times(engine: &mut GpuFlow, a: &LumaImage, b: &LumaImage, label: &str) {
     if n > 0 {
         let list: Vec<String> = sums.iter().map(|(l, s)| format!("{l} {:.3}", s / f64::from(n))).collect();
         eprintln!("{label}: pass times (ms, mean of {n}): {}", list.join(", "));
+    }
+}
+
+/// Where the host's time of a waiting `compute` goes, over 50 pairs: `submit` is
+/// `compute_pipelined` with nothing in flight (upload and submission only), `wait` the `flush`
+/// that follows (waiting for the GPU, readback, the CPU's finishing). Printed as
+/// "LABEL: host split (ms, mean of 50): submit …, wait …"; `stream` alternates the frames so that
+/// frame A is the previous pair's B (not uploaded again).
+fn host_split(engine: &mut GpuFlow, a: &LumaImage, b: &LumaImage, label: &str) {
+    for stream in [false, true] {
+        let (mut submit, mut wait) = (0.0, 0.0);
+        for i in 0..50 {
+            let (fa, fb) = if stream && i % 2 == 1 { (b, a) } else { (a, b) };
+            let t0 = Instant::now();
+            assert!(engine.compute_pipelined(fa, fb).unwrap().is_none());
+            let t1 = Instant::now();
+            engine.flush().unwrap();
+            submit += (t1 - t0).as_secs_f64() * 1e3;
+            wait += t1.elapsed().as_secs_f64() * 1e3;
+        }
+        let what = if stream { "stream" } else { "both new" };
+        eprintln!("{label}: host split, {what} (ms, mean of 50): submit {:.3}, wait {:.3}", submit / 50.0, wait / 50.0);
     }
 }
 
@@ -129,6 +151,7 @@ fn bench(c: &mut Criterion) {
             bch.iter(|| black_box(engine.compute(&a, &b).unwrap().valid_count()))
         });
         pass_times(&mut engine, &a, &b, &format!("gpu/{name}"));
+        host_split(&mut engine, &a, &b, &format!("gpu/{name}"));
         // A stream alternating a, b, a, b: each pair's A is the previous pair's B, so only B is
         // uploaded and preprocessed. `compute` waits for its own result (what `run` does);
         // `compute_pipelined` returns the previous pair's.

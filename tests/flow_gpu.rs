@@ -567,10 +567,11 @@ fn cost_volume_timing_information() {
             let times = g.last_pass_times().expect("pass times after a timed pair");
             eprintln!("  pass times (ms): {times:?}");
             let labels: Vec<&str> = times.iter().map(|t| t.0).collect();
+            // both frames are new: each is preprocessed in its own pass
             let want: &[&str] = if mode == Some(true) {
-                &["prep", "costvol", "reduce", "total"]
+                &["prep A", "prep B", "costvol", "reduce", "total"]
             } else {
-                &["prep", "match L0", "total"]
+                &["prep A", "prep B", "match L0", "total"]
             };
             assert_eq!(labels, want);
             assert!(times.iter().all(|t| t.1.is_finite() && t.1 >= 0.0), "{times:?}");

@@ -10,7 +10,8 @@ use hal::LumaImage;
 
 /// 32-bit words per block in the level-0 result record (see `match.wgsl`).
 pub(super) const RECORD: usize = 10;
-/// Workgroup size of the matching shader (capped by the device limit).
+/// Workgroup size of the cost-volume and reductions shaders, and of the per-block matching
+/// shader where [`match_wg`] does not choose another (capped by the device limit).
 const MATCH_WG: u32 = 256;
 
 /// Buffers of one frame slot at one pyramid level.
@@ -58,6 +59,7 @@ impl Sized {
         pipes: &mut Pipelines,
         p: &FlowParams,
         cost_volume: CostVolumeChoice,
+        match_wg: Option<u32>,
         width: usize,
         height: usize,
     ) -> Result<Self, FlowError> {
@@ -74,7 +76,8 @@ impl Sized {
         let n = origins.len();
         let nlev = p.pyramid_levels.max(1);
         let k = p.prefilter_radius;
-        let wg = MATCH_WG.min(limits.max_compute_invocations_per_workgroup).min(limits.max_compute_workgroup_size_x);
+        let max_wg = limits.max_compute_invocations_per_workgroup.min(limits.max_compute_workgroup_size_x);
+        let wg = MATCH_WG.min(max_wg);
         let budget = limits.max_compute_workgroup_storage_size;
         if limits.max_storage_buffers_per_shader_stage < 8 {
             return Err(gpu_err(format!(
@@ -96,7 +99,8 @@ impl Sized {
         for l in shapes.len()..nlev {
             let bl = crate::flow::level_block(p.block, l) as u32;
             let radius = if l == nlev - 1 { p.radius } else { p.refine_radius } as u32;
-            let shape = MatchShape::plan(wg, bl, radius, l == 0, budget).ok_or_else(|| {
+            let mwg = match_wg.unwrap_or_else(|| self::match_wg(radius, n)).min(max_wg).max(1);
+            let shape = MatchShape::plan(mwg, bl, radius, l == 0, budget).ok_or_else(|| {
                 gpu_err(format!(
                     "{bl} px blocks at radius {radius} do not fit the GPU's {budget} bytes of workgroup memory"
                 ))
@@ -270,6 +274,20 @@ impl Sized {
         })
     }
 }
+
+/// Invocations per workgroup of the per-block matching kernel at `radius` for `blocks` blocks.
+/// One workgroup runs per block, so a sparse grid (the default 16 × 16 = 256 blocks) gives a
+/// large GPU only one or two workgroups per multiprocessor: larger workgroups then keep more
+/// warps in flight for the (2r+1)² candidates (on an H200 at the default grid the matching pass
+/// takes 0.199 ms with 512 invocations, 0.211 ms with 256 and 0.212 ms with 1024; docs/gpu.md).
+/// Dense grids fill the GPU with workgroups anyway.
+fn match_wg(radius: u32, blocks: usize) -> u32 {
+    let candidates = (2 * radius + 1) * (2 * radius + 1);
+    if blocks <= 2048 && candidates >= 1024 { SPARSE_MATCH_WG } else { MATCH_WG }
+}
+
+/// [`match_wg`] for sparse grids with large windows.
+const SPARSE_MATCH_WG: u32 = 512;
 
 /// Writes frame `img` into a packed buffer of `ws` words per row (rows padded with zeros).
 pub(super) fn upload(queue: &wgpu::Queue, buf: &wgpu::Buffer, img: &LumaImage, ws: usize, pack: &mut Vec<u8>) {

@@ -3,16 +3,21 @@
 //! for its own result or one pair behind (pipelined). Optional per-pass GPU timing.
 
 use super::buffers::{Sized, fill_field, upload};
-use super::context::{GpuContext, gpu_err};
+use super::context::{GpuContext, gpu_err, is_hardware};
 use super::pipelines::{PREP_WG, Pipelines};
 use super::plan::CostVolumeChoice;
 use crate::flow::{FlowEngine, FlowError, FlowField, FlowParams};
 use hal::LumaImage;
 use std::collections::VecDeque;
 use std::sync::{Arc, mpsc};
+use std::time::{Duration, Instant};
 
 /// Most timed passes per pair (preprocessing, cost volume, one per matching level).
 const MAX_TIMED: u32 = 16;
+/// How long [`GpuFlow`] polls a hardware device without blocking for a pair's result before it
+/// sleeps in the driver's wait: a pair at the default grid takes a fraction of a millisecond,
+/// less than the driver's wake-up after a blocking wait adds to it.
+const SPIN: Duration = Duration::from_millis(2);
 /// Labels of the matching passes per level (`match L0` is the finest).
 const MATCH_LABELS: [&str; 8] =
     ["match L0", "match L1", "match L2", "match L3", "match L4", "match L5", "match L6", "match L7"];
@@ -56,6 +61,13 @@ pub struct GpuFlow {
     reused_a: bool,
     /// Whether and how the dense fast path (the cost volume) runs.
     cost_volume: CostVolumeChoice,
+    /// Invocations per workgroup of the per-block matching kernel (`FLOWNAV_GPU_MATCH_WG`);
+    /// `None`: the planner's.
+    match_wg: Option<u32>,
+    /// Whether `receive` polls without blocking first ([`SPIN`]): hardware adapters only (on a
+    /// software rasteriser the polling thread would take a core from the rasteriser's own);
+    /// `FLOWNAV_GPU_WAIT=block` turns it off.
+    spin: bool,
     /// Per-pass GPU timing, when on (`set_pass_timing`, `FLOWNAV_GPU_TIMESTAMPS=1`) and the
     /// device has timestamp queries.
     timing: Option<PassTiming>,
@@ -72,6 +84,7 @@ impl GpuFlow {
     pub fn new(ctx: Arc<GpuContext>, params: FlowParams) -> Result<Self, FlowError> {
         params.validate()?;
         let pipes = Pipelines::new(&ctx.device)?;
+        let spin = is_hardware(ctx.info()) && std::env::var("FLOWNAV_GPU_WAIT").as_deref() != Ok("block");
         Ok(Self {
             ctx,
             params,
@@ -92,6 +105,8 @@ impl GpuFlow {
                 },
                 tile: None,
             },
+            match_wg: std::env::var("FLOWNAV_GPU_MATCH_WG").ok().and_then(|v| v.parse().ok()),
+            spin,
             timing: None,
         }
         .with_pass_timing(std::env::var("FLOWNAV_GPU_TIMESTAMPS").as_deref() == Ok("1")))
@@ -243,7 +258,8 @@ impl GpuFlow {
             }
             self.sized = None;
             self.last_b_slot = None;
-            self.sized = Some(Sized::new(&self.ctx, &mut self.pipes, &self.params, self.cost_volume, w, h)?);
+            self.sized =
+                Some(Sized::new(&self.ctx, &mut self.pipes, &self.params, self.cost_volume, self.match_wg, w, h)?);
         }
         // Frame A is usually the previous pair's frame B: keep it on the GPU.
         let (slot_a, upload_a) = match self.last_b_slot {
@@ -254,17 +270,9 @@ impl GpuFlow {
         self.reused_a = !upload_a;
         let ctx = Arc::clone(&self.ctx);
         let sized = self.sized.as_ref().expect("built above");
-        if upload_a {
-            upload(&ctx.queue, &sized.slots[slot_a][0].raw, a, sized.dims[0].2, &mut self.pack);
-        }
-        upload(&ctx.queue, &sized.slots[slot_b][0].raw, b, sized.dims[0].2, &mut self.pack);
-        self.last_b.clear();
-        self.last_b.extend_from_slice(b.data());
-        self.last_b_slot = Some(slot_b);
-
         let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("flow") });
-        // One compute pass per stage (preprocessing, cost volume, matching per level), each
-        // with a begin and an end timestamp when pass timing is on and free.
+        // One compute pass per stage (preprocessing of each new frame, cost volume, matching per
+        // level), each with a begin and an end timestamp when pass timing is on and free.
         let timing = self.timing.as_mut().filter(|t| !t.busy);
         let queries = timing.as_ref().map(|t| &t.queries);
         let mut labels: Vec<&'static str> = Vec::new();
@@ -282,42 +290,49 @@ impl GpuFlow {
                 .forget_lifetime()
         };
         let nlev = sized.dims.len();
-        if nlev > 1 || sized.slots[slot_b][0].hp.is_some() {
-            let mut pass = begin(&mut enc, "prep");
-            for (s, upload) in [(slot_a, upload_a), (slot_b, true)] {
-                if !upload {
-                    continue;
+        let prep = nlev > 1 || sized.slots[slot_b][0].hp.is_some();
+        let pipes = &self.pipes;
+        let prep_frame = |pass: &mut wgpu::ComputePass<'static>, s: usize| {
+            for l in 0..nlev {
+                let sl = &sized.slots[s][l];
+                let (_, hl, ws) = sized.dims[l];
+                let groups = (ws as u32).div_ceil(PREP_WG);
+                if let Some(bg) = &sl.down_bg {
+                    pass.set_pipeline(&pipes.downsample);
+                    pass.set_bind_group(0, bg, &[]);
+                    pass.dispatch_workgroups(groups, hl as u32, 1);
                 }
-                for l in 0..nlev {
-                    let sl = &sized.slots[s][l];
-                    let (_, hl, ws) = sized.dims[l];
-                    let groups = (ws as u32).div_ceil(PREP_WG);
-                    if let Some(bg) = &sl.down_bg {
-                        pass.set_pipeline(&self.pipes.downsample);
-                        pass.set_bind_group(0, bg, &[]);
-                        pass.dispatch_workgroups(groups, hl as u32, 1);
-                    }
-                    if let (Some(cbg), Some(hbg)) = (&sl.colsum_bg, &sl.highpass_bg) {
-                        pass.set_pipeline(&self.pipes.colsum);
-                        pass.set_bind_group(0, cbg, &[]);
-                        pass.dispatch_workgroups(groups, hl as u32, 1);
-                        pass.set_pipeline(&self.pipes.highpass);
-                        pass.set_bind_group(0, hbg, &[]);
-                        pass.dispatch_workgroups(groups, hl as u32, 1);
-                    }
+                if let (Some(cbg), Some(hbg)) = (&sl.colsum_bg, &sl.highpass_bg) {
+                    pass.set_pipeline(&pipes.colsum);
+                    pass.set_bind_group(0, cbg, &[]);
+                    pass.dispatch_workgroups(groups, hl as u32, 1);
+                    pass.set_pipeline(&pipes.highpass);
+                    pass.set_bind_group(0, hbg, &[]);
+                    pass.dispatch_workgroups(groups, hl as u32, 1);
                 }
             }
+        };
+        if upload_a {
+            upload(&ctx.queue, &sized.slots[slot_a][0].raw, a, sized.dims[0].2, &mut self.pack);
+            if prep {
+                prep_frame(&mut begin(&mut enc, "prep A"), slot_a);
+            }
+        }
+        upload(&ctx.queue, &sized.slots[slot_b][0].raw, b, sized.dims[0].2, &mut self.pack);
+        self.last_b_slot = Some(slot_b);
+        if prep {
+            prep_frame(&mut begin(&mut enc, "prep B"), slot_b);
         }
         if let Some((plan, bgs)) = &sized.cost_volume {
             let mut pass = begin(&mut enc, "costvol");
-            pass.set_pipeline(&self.pipes.costvols[&plan.shape]);
+            pass.set_pipeline(&pipes.costvols[&plan.shape]);
             pass.set_bind_group(0, &bgs[slot_a], &[]);
             pass.dispatch_workgroups(plan.ntc, plan.ntr, 2 * plan.shape.radius + 1);
         }
         for l in (0..nlev).rev() {
             let label = if sized.shapes[l].pre { "reduce" } else { MATCH_LABELS[l.min(MATCH_LABELS.len() - 1)] };
             let mut pass = begin(&mut enc, label);
-            pass.set_pipeline(&self.pipes.matchers[&sized.shapes[l]]);
+            pass.set_pipeline(&pipes.matchers[&sized.shapes[l]]);
             pass.set_bind_group(0, &sized.match_bgs[slot_a][l], &[]);
             pass.dispatch_workgroups(sized.cols as u32, sized.rows as u32, 1);
         }
@@ -340,6 +355,9 @@ impl GpuFlow {
         });
         self.submitted += 1;
         self.pending.push_back(InFlight { staging, submission, mapped: rx, timed });
+        // Kept to recognise the next pair's frame A; copied while the GPU runs.
+        self.last_b.clear();
+        self.last_b.extend_from_slice(b.data());
         Ok(())
     }
 
@@ -347,13 +365,29 @@ impl GpuFlow {
     fn receive(&mut self) -> Result<(), FlowError> {
         let job = self.pending.pop_front().expect("receive with a pair in flight");
         let ctx = &self.ctx;
-        ctx.device
-            .poll(wgpu::PollType::Wait { submission_index: Some(job.submission), timeout: None })
-            .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
+        // Polling until the map callback has run answers within microseconds of the GPU's end;
+        // a blocking wait sleeps until the driver wakes the thread.
+        let mut mapped = None;
+        if self.spin {
+            let t0 = Instant::now();
+            while mapped.is_none() && t0.elapsed() < SPIN {
+                ctx.device.poll(wgpu::PollType::Poll).map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
+                mapped = job.mapped.try_recv().ok();
+            }
+        }
+        if mapped.is_none() {
+            ctx.device
+                .poll(wgpu::PollType::Wait { submission_index: Some(job.submission), timeout: None })
+                .map_err(|e| gpu_err(format!("waiting for the GPU: {e}")))?;
+        }
         if let Some(e) = ctx.take_error() {
             return Err(gpu_err(format!("the GPU flow computation failed: {e}")));
         }
-        match wait_mapped(ctx, &job.mapped)? {
+        let mapped = match mapped {
+            Some(r) => Ok(r),
+            None => wait_mapped(ctx, &job.mapped)?,
+        };
+        match mapped {
             Ok(Ok(())) => {}
             Ok(Err(e)) => return Err(gpu_err(format!("reading the flow results back: {e}"))),
             Err(_) => return Err(gpu_err("the GPU did not deliver the flow results")),

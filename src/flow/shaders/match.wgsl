@@ -46,15 +46,11 @@ fn sad2(a: u32, b: u32) -> u32 {
     return d.x + d.y;
 }
 
-// Four pixels of the cached window starting at byte `p` of shared row `row` (any alignment).
-fn sb_word(row: u32, p: u32) -> u32 {
-    let i = row * RW + (p >> 2u);
-    let s = (p & 3u) * 8u;
-    let lo = sb[i];
-    if s == 0u {
-        return lo;
-    }
-    return (lo >> s) | (sb[i + 1u] << (32u - s));
+// Four pixels starting `sh` bits into `lo`, the rest from the next word `hi` (sh in 0, 8, 16,
+// 24). `hi` is shifted by 32 - sh in two steps so that sh = 0 takes nothing from it (a shift
+// by 32 would keep it whole): no branch, one expression for every alignment.
+fn funnel4(lo: u32, hi: u32, sh: u32) -> u32 {
+    return (lo >> sh) | ((hi << 1u) << (31u - sh));
 }
 
 // Four pixels of a frame starting at pixel (x, y), any alignment.
@@ -237,16 +233,25 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     let cy = j / nx;
                     let cx = j - cy * nx;
                     var s = acc[kk];
+                    // The candidate's window row starts `sh` bits into word `col` of each cached
+                    // row; walking along the row, each word of B is loaded once and serves as the
+                    // high part of one step and the low part of the next. The last word read,
+                    // col + AW at most, lies inside the row's RW words.
+                    let pp = off0 + cx;
+                    let sh = (pp & 3u) * 8u;
+                    let col = pp >> 2u;
                     for (var r = 0u; r < chn; r++) {
                         let arow = r * AW;
-                        let brow = r + cy;
-                        var pp = off0 + cx;
+                        var bi = (r + cy) * RW + col;
+                        var lo = sb[bi];
                         for (var wi = 0u; wi < AWF; wi++) {
-                            s += sad4(sa[arow + wi], sb_word(brow, pp));
-                            pp += 4u;
+                            bi += 1u;
+                            let hi = sb[bi];
+                            s += sad4(sa[arow + wi], funnel4(lo, hi, sh));
+                            lo = hi;
                         }
                         if TAIL {
-                            s += sad2(sa[arow + AWF], sb_word(brow, pp));
+                            s += sad2(sa[arow + AWF], funnel4(lo, sb[bi + 1u], sh));
                         }
                     }
                     acc[kk] = s;
