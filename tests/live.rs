@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use base64::Engine as _;
 use flownav::logging::sample::{self, SampleImages};
-use flownav::logging::{LiveServer, LogOptions, LogWriter};
+use flownav::logging::{LiveImages, LiveServer, LogOptions, LogWriter};
 use hal::Calibration;
 use serde_json::{Value, json};
 use tungstenite::client::IntoClientRequest;
@@ -126,7 +126,7 @@ fn a_foxglove_client_gets_every_logged_channel_with_the_mcap_schemas() {
     // The file's own statistics (written at flushes) are not a topic of the live view.
     expected.retain(|k, _| !k.starts_with("/logger/stats"));
 
-    let server = LiveServer::start("127.0.0.1:0".parse().unwrap()).unwrap();
+    let server = LiveServer::start("127.0.0.1:0".parse().unwrap(), LiveImages::Mono8).unwrap();
     assert_ne!(server.addr().port(), 0);
     let mut options = LogOptions::new("test");
     options.live = Some(server.sink());
@@ -156,11 +156,10 @@ fn a_foxglove_client_gets_every_logged_channel_with_the_mcap_schemas() {
         let key = viewer.key(*id);
         assert_eq!(ch["encoding"], "json", "{key}");
         assert_eq!(ch["schemaEncoding"], "jsonschema", "{key}");
-        assert_eq!(
-            ch["schema"].as_str(),
-            expected.get(&key).map(String::as_str),
-            "{key}: schema differs from the MCAP's"
-        );
+        // Channels are advertised up front; those the sample logs must carry the file's schema.
+        if let Some(schema) = expected.get(&key) {
+            assert_eq!(ch["schema"].as_str(), Some(schema.as_str()), "{key}: schema differs from the MCAP's");
+        }
     }
     for (id, messages) in &viewer.received {
         let key = viewer.key(*id);

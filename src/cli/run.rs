@@ -13,7 +13,7 @@ use super::Common;
 use crate::config::Config;
 use crate::logging::live::{self, LiveServer};
 use crate::logging::record::{add_map, run_options};
-use crate::logging::{LiveSink, LogWriter};
+use crate::logging::{LiveImages, LiveSink, LogWriter};
 use crate::pafsis::{Mission, TopoMap};
 use crate::runtime::config::{BaseKind, BaseSpec};
 use crate::runtime::reopen::ReopeningCamera;
@@ -112,7 +112,12 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     let camera = ReopeningCamera::new(camera, reopen);
     warn_if_stall_too_short(&cfg, &camera_spec);
     // Before the base: a live view that cannot start refuses the run while nothing moves.
-    let live = args.live.map(start_live).transpose()?;
+    // An MJPEG camera's frames are logged as the JPEG bytes it sent; others as mono8.
+    let images = match (&camera_spec, cfg.camera.format) {
+        (CameraSpec::Device(_), hal::v4l2::PixelFormat::Mjpeg) => LiveImages::Jpeg,
+        _ => LiveImages::Mono8,
+    };
+    let live = args.live.map(|addr| start_live(addr, images)).transpose()?;
 
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -224,8 +229,8 @@ where
 }
 
 /// Starts the live view and says where to connect (stderr, one line: `live view on ws://ADDR`).
-fn start_live(addr: std::net::SocketAddr) -> anyhow::Result<LiveServer> {
-    let server = LiveServer::start(addr)?;
+fn start_live(addr: std::net::SocketAddr, images: LiveImages) -> anyhow::Result<LiveServer> {
+    let server = LiveServer::start(addr, images)?;
     eprintln!("live view on {} (Foxglove: Open connection, Foxglove WebSocket)", server.url());
     Ok(server)
 }

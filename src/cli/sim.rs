@@ -6,7 +6,7 @@
 use super::Common;
 use crate::logging::live::{self, LiveServer};
 use crate::logging::record;
-use crate::logging::{LiveSink, LogWriter};
+use crate::logging::{LiveImages, LiveSink, LogWriter};
 use crate::pafsis::{Mission, TopoMap};
 use crate::sim::{self, OFFICE_MAP_TOML, SimSetup, SimSummary};
 use anyhow::Context;
@@ -207,7 +207,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     };
     let live = match args.live {
         Some(addr) => {
-            let server = LiveServer::start(addr)?;
+            let server = LiveServer::start(addr, LiveImages::Mono8)?;
             eprintln!("live view on {} (Foxglove: Open connection, Foxglove WebSocket)", server.url());
             Some(server)
         }

@@ -37,6 +37,16 @@ const QUEUE_BYTES: usize = 16 << 20;
 /// default is 1024; a few seconds of every topic at 30 fps, without holding hundreds of frames).
 const CLIENT_BACKLOG: usize = 512;
 
+/// How the run's camera images are logged, so the live view can advertise `/camera/image` with
+/// its schema before any viewer connects.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LiveImages {
+    /// `foxglove.RawImage` mono8 (the simulator, frame folders, cameras without MJPEG).
+    Mono8,
+    /// `foxglove.CompressedImage` JPEG (an MJPEG camera).
+    Jpeg,
+}
+
 /// Why the live view could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum LiveError {
@@ -183,7 +193,12 @@ pub struct LiveServer {
 impl LiveServer {
     /// Starts serving on `addr` (port 0: any free port, see [`LiveServer::addr`]). Fails before
     /// anything else starts when the address cannot be bound.
-    pub fn start(addr: SocketAddr) -> Result<Self, LiveError> {
+    ///
+    /// Every channel is created here, before a viewer can connect: the crate's server (0.30)
+    /// sends a new channel's advertisement before it records the channel for the client, so a
+    /// viewer that subscribes at once to a channel added while it is connected can be refused
+    /// ("unknown channel"). Channels that exist when a viewer connects are recorded first.
+    pub fn start(addr: SocketAddr, images: LiveImages) -> Result<Self, LiveError> {
         let start_err = |message: String| LiveError::Start { addr, message };
         // Its own runtime, so sending images to a viewer never competes with the base's serial
         // link on the run's runtime.
@@ -223,7 +238,15 @@ impl LiveServer {
             })?;
         let bound = SocketAddr::new(addr.ip(), server.port());
         let (tx, rx) = crossbeam_channel::bounded(QUEUE_MESSAGES);
-        let feeder = Feeder { context, channels: HashMap::new(), shared: Arc::clone(&shared) };
+        let mut feeder = Feeder { context, channels: HashMap::new(), shared: Arc::clone(&shared) };
+        let image = match images {
+            LiveImages::Mono8 => Topic::ImageRaw,
+            LiveImages::Jpeg => Topic::ImageCompressed,
+        };
+        for topic in Topic::ALL.into_iter().filter(|t| !matches!(t, Topic::ImageRaw | Topic::ImageCompressed)) {
+            feeder.channel(topic);
+        }
+        feeder.channel(image);
         let thread = std::thread::Builder::new()
             .name("flownav-live".into())
             .spawn(move || feeder.run(rx))
@@ -310,28 +333,31 @@ impl Feeder {
         }
     }
 
-    fn publish(&mut self, m: &Message) {
-        let key = (m.topic.name(), m.topic.schema_name());
-        let channel = match self.channels.get(&key) {
-            Some(c) => c,
-            None => {
-                // The JSON schema exactly as the MCAP writer registers it.
-                let schema = serde_json::to_vec(&m.topic.schema()).unwrap_or_default();
-                let built = self
-                    .context
-                    .channel_builder(m.topic.name())
-                    .message_encoding("json")
-                    .schema(Schema::new(m.topic.schema_name(), SCHEMA_ENCODING, schema))
-                    .build_raw();
-                match built {
-                    Ok(c) => self.channels.entry(key).or_insert(c),
-                    Err(e) => {
-                        tracing::warn!(topic = m.topic.name(), "live view: cannot add the channel: {e}");
-                        return;
-                    }
-                }
+    /// The channel of `topic`, created on first use with the JSON schema exactly as the MCAP
+    /// writer registers it.
+    fn channel(&mut self, topic: Topic) -> Option<Arc<RawChannel>> {
+        let key = (topic.name(), topic.schema_name());
+        if let Some(c) = self.channels.get(&key) {
+            return Some(Arc::clone(c));
+        }
+        let schema = serde_json::to_vec(&topic.schema()).unwrap_or_default();
+        let built = self
+            .context
+            .channel_builder(topic.name())
+            .message_encoding("json")
+            .schema(Schema::new(topic.schema_name(), SCHEMA_ENCODING, schema))
+            .build_raw();
+        match built {
+            Ok(c) => Some(Arc::clone(self.channels.entry(key).or_insert(c))),
+            Err(e) => {
+                tracing::warn!(topic = topic.name(), "live view: cannot add the channel: {e}");
+                None
             }
-        };
+        }
+    }
+
+    fn publish(&mut self, m: &Message) {
+        let Some(channel) = self.channel(m.topic) else { return };
         if channel.has_sinks() {
             channel.log_with_meta(&m.data, PartialMetadata { log_time: Some(m.log_time_ns) });
             self.shared.sent.fetch_add(1, Ordering::Relaxed);

@@ -33,7 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
 
 pub use info::{LogInfo, TopicInfo};
-pub use live::{LiveServer, LiveSink, LiveStats};
+pub use live::{LiveImages, LiveServer, LiveSink, LiveStats};
 pub use payload::{
     BaseStatusLog, GoalLog, LogLevel, LoggerStats, PerceptionLog, Pose2D, SetpointLog, StepInputLog, WorldBox,
     WorldCylinder, WorldGeometry,
@@ -190,6 +190,25 @@ pub(crate) enum Topic {
 
 impl Topic {
     pub(crate) const COUNT: usize = 16;
+
+    pub(crate) const ALL: [Topic; Topic::COUNT] = [
+        Topic::ImageCompressed,
+        Topic::ImageRaw,
+        Topic::Calibration,
+        Topic::CameraMount,
+        Topic::FlowAnnotations,
+        Topic::FlowField,
+        Topic::Perception,
+        Topic::Goal,
+        Topic::Setpoint,
+        Topic::Odometry,
+        Topic::BaseStatus,
+        Topic::RobotPose,
+        Topic::World,
+        Topic::Log,
+        Topic::Stats,
+        Topic::StepInput,
+    ];
 
     pub(crate) fn name(self) -> &'static str {
         match self {
