@@ -1,8 +1,9 @@
 //! `flownav run --camera /dev/videoN|frames:DIR --base fnp:PORT|kobuki:PORT [--map FILE --mission
-//! FROM:TO] [--log DIR | --no-log] [--log-split-mb MB] [--duration S] [--loop]`: drives a robot.
+//! FROM:TO] [--log DIR | --no-log] [--log-split-mb MB] [--live [ADDR]] [--duration S] [--loop]`:
+//! drives a robot.
 //!
 //! Opens the pieces in an order that never leaves a base running unattended: the pipeline
-//! (config, calibration, map) and the camera first, then the base, then the log; any failure
+//! (config, calibration, map), the camera and the live view first, then the base, then the log; any failure
 //! after the base is open drops it, and dropping a driver sends STOP. Then hands everything to
 //! [`crate::runtime::run`] with a shutdown future that completes on Ctrl-C, SIGTERM or after
 //! `--duration`. At the end it prints one JSON line (the [`RunReport`]) to stdout; the latency
@@ -10,8 +11,9 @@
 
 use super::Common;
 use crate::config::Config;
-use crate::logging::LogWriter;
+use crate::logging::live::{self, LiveServer};
 use crate::logging::record::{add_map, run_options};
+use crate::logging::{LiveImages, LiveSink, LogWriter};
 use crate::pafsis::{Mission, TopoMap};
 use crate::runtime::config::{BaseKind, BaseSpec};
 use crate::runtime::reopen::ReopeningCamera;
@@ -60,6 +62,11 @@ pub struct Args {
     /// run after its last frame; for soak tests. End the run with --duration or Ctrl-C.
     #[arg(long = "loop")]
     pub loop_frames: bool,
+    /// Serve the logged topics live to Foxglove (WebSocket) on IP:PORT; without a value
+    /// 127.0.0.1:8765 (this machine only; 0.0.0.0:8765 to watch from another computer).
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = live::DEFAULT_ADDR,
+          value_parser = live::parse_addr)]
+    pub live: Option<std::net::SocketAddr>,
 }
 
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
@@ -104,14 +111,22 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     };
     let camera = ReopeningCamera::new(camera, reopen);
     warn_if_stall_too_short(&cfg, &camera_spec);
+    // Before the base: a live view that cannot start refuses the run while nothing moves.
+    // An MJPEG camera's frames are logged as the JPEG bytes it sent; others as mono8.
+    let images = match (&camera_spec, cfg.camera.format) {
+        (CameraSpec::Device(_), hal::v4l2::PixelFormat::Mjpeg) => LiveImages::Jpeg,
+        _ => LiveImages::Mono8,
+    };
+    let live = args.live.map(|addr| start_live(addr, images)).transpose()?;
 
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .context("starting the tokio runtime")?;
-    let logging = LogSetup { cfg: &cfg, calib: &calib, args: &args, map: map_for_log };
-    let report = rt.block_on(async {
+    let logging =
+        LogSetup { cfg: &cfg, calib: &calib, args: &args, map: map_for_log, live: live.as_ref().map(LiveServer::sink) };
+    let mut report = rt.block_on(async {
         match base_spec.kind {
             BaseKind::Fnp => {
                 let fnp = FnpConfig {
@@ -136,6 +151,11 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
             }
         }
     })?;
+    if let Some(server) = live {
+        let stats = server.close();
+        tracing::info!(sent = stats.sent, dropped = stats.dropped, clients = stats.clients, "live view closed");
+        report.live = Some(stats);
+    }
     let mut out = std::io::stdout().lock();
     writeln!(out, "{}", serde_json::to_string(&report).context("serialising the run report")?)?;
     out.flush()?;
@@ -148,12 +168,20 @@ struct LogSetup<'a> {
     calib: &'a Calibration,
     args: &'a Args,
     map: Option<TopoMap>,
+    live: Option<LiveSink>,
 }
 
 impl LogSetup<'_> {
     fn open(self) -> anyhow::Result<Option<LogWriter>> {
         if self.args.no_log || (!self.cfg.run.log && self.args.log.is_none()) {
-            return Ok(None);
+            // No file; with --live the logger still encodes for the viewer.
+            let Some(live) = self.live else { return Ok(None) };
+            let mut options = run_options("run", self.cfg, self.calib, self.args.mission.as_deref(), None);
+            options.time_offset_ns = crate::logging::wall_clock_offset_ns(monotonic_ns());
+            options.live = Some(live);
+            let log = LogWriter::live_only(options).context("starting the live view's encoder")?;
+            log.handle().calibration(monotonic_ns(), self.calib);
+            return Ok(Some(log));
         }
         let dir = self.args.log.clone().unwrap_or_else(|| self.cfg.run.log_dir.clone());
         let split_mb = self.args.log_split_mb.or(self.cfg.run.log_split_mb.map(|mb| mb as f64));
@@ -162,6 +190,7 @@ impl LogSetup<'_> {
             add_map(&mut options, map);
         }
         options.time_offset_ns = crate::logging::wall_clock_offset_ns(monotonic_ns());
+        options.live = self.live;
         std::fs::create_dir_all(&dir).with_context(|| format!("creating the log folder {}", dir.display()))?;
         let log = LogWriter::create(&dir, options).with_context(|| format!("opening a log in {}", dir.display()))?;
         log.handle().calibration(monotonic_ns(), self.calib);
@@ -190,11 +219,20 @@ where
     if let Some(log) = log {
         let path = log.path().to_path_buf();
         match log.close() {
+            // The live view's encoder (--no-log --live): no file to report.
+            Ok(_) if path.as_os_str().is_empty() => {}
             Ok(summary) => tracing::info!(path = %path.display(), stats = ?summary.stats, "log closed"),
             Err(e) => tracing::error!(path = %path.display(), "the log could not be finished: {e}"),
         }
     }
     Ok(result?)
+}
+
+/// Starts the live view and says where to connect (stderr, one line: `live view on ws://ADDR`).
+fn start_live(addr: std::net::SocketAddr, images: LiveImages) -> anyhow::Result<LiveServer> {
+    let server = LiveServer::start(addr, images)?;
+    eprintln!("live view on {} (Foxglove: Open connection, Foxglove WebSocket)", server.url());
+    Ok(server)
 }
 
 /// Completes on Ctrl-C, SIGTERM, or after `duration`.

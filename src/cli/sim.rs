@@ -4,8 +4,9 @@
 //! `--seeds A..B` runs one mission per seed and adds an aggregate line.
 
 use super::Common;
-use crate::logging::LogWriter;
+use crate::logging::live::{self, LiveServer};
 use crate::logging::record;
+use crate::logging::{LiveImages, LiveSink, LogWriter};
 use crate::pafsis::{Mission, TopoMap};
 use crate::sim::{self, OFFICE_MAP_TOML, SimSetup, SimSummary};
 use anyhow::Context;
@@ -77,6 +78,11 @@ pub struct Args {
     /// `estop@20+3` (bumper, estop, motor-fault; repeatable). Contacts press the bumper anyway.
     #[arg(long, value_name = "KIND@START+FOR")]
     pub alarm: Vec<mocks::faults::AlarmWindow>,
+    /// Serve the logged topics live to Foxglove (WebSocket) on IP:PORT; without a value
+    /// 127.0.0.1:8765. Paces the loop to the wall clock (as --realtime) so there is time to watch.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = live::DEFAULT_ADDR,
+          value_parser = live::parse_addr, conflicts_with = "seeds")]
+    pub live: Option<std::net::SocketAddr>,
 }
 
 /// `DX,DY,DYAW_DEG` → a pose offset (m, m, rad).
@@ -199,6 +205,14 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         (None, false, false) => Some(PathBuf::from("logs")),
         _ => None,
     };
+    let live = match args.live {
+        Some(addr) => {
+            let server = LiveServer::start(addr, LiveImages::Mono8)?;
+            eprintln!("live view on {} (Foxglove: Open connection, Foxglove WebSocket)", server.url());
+            Some(server)
+        }
+        None => None,
+    };
     // With --seeds on a terminal: "n of N runs [...] reached r, contacts c, ETA".
     let progress = match args.seeds {
         Some(_) => super::output::bar(seeds.len() as u64, "runs").with_message("reached 0, contacts 0"),
@@ -212,9 +226,17 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         config: &config,
         calib: &calib,
         log_dir,
+        live: live.as_ref().map(LiveServer::sink),
         progress: progress.clone(),
     };
-    let results = run_missions(&job, &seeds, args.jobs as usize)?;
+    let results = run_missions(&job, &seeds, args.jobs as usize);
+    if let Some(server) = live {
+        let s = server.close();
+        if !args.quiet {
+            eprintln!("live view: {} messages sent, {} dropped, {} clients", s.sent, s.dropped, s.clients);
+        }
+    }
+    let results = results?;
     progress.finish_and_clear();
     if args.seeds.is_some() {
         let agg = Aggregate::of(&results);
@@ -265,6 +287,7 @@ struct SeedJob<'a> {
     config: &'a crate::config::Config,
     calib: &'a Calibration,
     log_dir: Option<PathBuf>,
+    live: Option<LiveSink>,
     progress: indicatif::ProgressBar,
 }
 
@@ -294,7 +317,8 @@ impl SeedJob<'_> {
         setup.noise_sigma = args.noise;
         setup.seed = seed.unwrap_or(0);
         setup.max_time_s = args.max_time;
-        setup.realtime = args.realtime;
+        // Watching live needs the simulated clock to run at the wall clock's pace.
+        setup.realtime = args.realtime || self.live.is_some();
         setup.odometry_error = args.odometry_error;
         setup.alarms = args.alarm.clone();
         if let Some(e) = args.start_error {
@@ -343,14 +367,17 @@ impl SeedJob<'_> {
                 self.say(format!("{tag}obstacles: {}", obstacles.join("; ")));
             }
         }
-        let log = match &self.log_dir {
-            Some(dir) => {
-                let mission = setup.mission.to_string();
-                let mut options = record::run_options("sim", &setup.config, &setup.calib, Some(&mission), None);
-                record::add_map(&mut options, &setup.map);
-                Some(LogWriter::create(dir, options).context("opening the MCAP log")?)
-            }
-            None => None,
+        let mission = setup.mission.to_string();
+        let options = || {
+            let mut options = record::run_options("sim", &setup.config, &setup.calib, Some(&mission), None);
+            record::add_map(&mut options, &setup.map);
+            options.live = self.live.clone();
+            options
+        };
+        let log = match (&self.log_dir, &self.live) {
+            (Some(dir), _) => Some(LogWriter::create(dir, options()).context("opening the MCAP log")?),
+            (None, Some(_)) => Some(LogWriter::live_only(options()).context("starting the live view's encoder")?),
+            (None, None) => None,
         };
         let handle = log.as_ref().map(|l| l.handle());
         let quiet = args.quiet;
@@ -364,7 +391,7 @@ impl SeedJob<'_> {
         if let Some(log) = log {
             let path = log.path().to_path_buf();
             let s = log.close().context("closing the MCAP log")?;
-            if !args.quiet {
+            if !args.quiet && self.log_dir.is_some() {
                 self.say(format!("{tag}log: {} ({s})", path.display()));
             }
         }

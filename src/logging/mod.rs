@@ -8,6 +8,8 @@
 //!   (frames as [`hal::LumaImage`] or JPEG bytes, odometry, perception, set-points, ...),
 //!   tolerant of a file cut short by a crash.
 //! - [`LogInfo`]: what `flownav log info` prints (topics, counts, times, drops, truncation).
+//! - [`LiveServer`] / [`LiveSink`] (`--live`): the same messages, as the writer thread encodes
+//!   them, served to Foxglove over WebSocket; dropped and counted when the viewer side falls behind.
 //!
 //! Encoding: every channel is JSON with a JSON schema (`jsonschema`). Foxglove's own types
 //! (`foxglove.CompressedImage`, `RawImage`, `CameraCalibration`, `ImageAnnotations`,
@@ -18,6 +20,7 @@
 pub mod encode;
 pub mod foxglove;
 mod info;
+pub mod live;
 pub mod payload;
 mod reader;
 pub mod record;
@@ -30,6 +33,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
 
 pub use info::{LogInfo, TopicInfo};
+pub use live::{LiveImages, LiveServer, LiveSink, LiveStats};
 pub use payload::{
     BaseStatusLog, GoalLog, LogLevel, LoggerStats, PerceptionLog, Pose2D, SetpointLog, StepInputLog, WorldBox,
     WorldCylinder, WorldGeometry,
@@ -97,6 +101,8 @@ pub struct LogOptions {
     /// Extra metadata records written at the start of every file (e.g. `flownav.config` with the
     /// configuration, so a replay can rebuild it).
     pub metadata: Vec<(String, BTreeMap<String, String>)>,
+    /// The live view (`--live`): every message written to the file is offered to it too.
+    pub live: Option<LiveSink>,
 }
 
 impl Default for LogOptions {
@@ -112,6 +118,7 @@ impl Default for LogOptions {
             time_offset_ns: 0,
             compression_level: 0,
             metadata: Vec::new(),
+            live: None,
         }
     }
 }
@@ -183,6 +190,25 @@ pub(crate) enum Topic {
 
 impl Topic {
     pub(crate) const COUNT: usize = 16;
+
+    pub(crate) const ALL: [Topic; Topic::COUNT] = [
+        Topic::ImageCompressed,
+        Topic::ImageRaw,
+        Topic::Calibration,
+        Topic::CameraMount,
+        Topic::FlowAnnotations,
+        Topic::FlowField,
+        Topic::Perception,
+        Topic::Goal,
+        Topic::Setpoint,
+        Topic::Odometry,
+        Topic::BaseStatus,
+        Topic::RobotPose,
+        Topic::World,
+        Topic::Log,
+        Topic::Stats,
+        Topic::StepInput,
+    ];
 
     pub(crate) fn name(self) -> &'static str {
         match self {

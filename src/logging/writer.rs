@@ -26,7 +26,7 @@ use serde_json::Value;
 
 use super::encode;
 use super::payload::{BaseStatusLog, GoalLog, LogLevel, LoggerStats, Pose2D, SetpointLog, StepInputLog, WorldGeometry};
-use super::{LogError, LogOptions, SCHEMA_ENCODING, Topic, default_file_name, open_new};
+use super::{LiveSink, LogError, LogOptions, SCHEMA_ENCODING, Topic, default_file_name, open_new};
 use crate::flow::FlowField;
 use crate::perception::Perception;
 
@@ -290,7 +290,30 @@ impl LogWriter {
         Self::start(file, path.to_path_buf(), stem, dir, options)
     }
 
+    /// A logger that writes no file and only feeds the live view ([`LogOptions::live`], `--live`
+    /// with `--no-log`): the same encoding on the same thread, without the disk. While no
+    /// viewer is connected it encodes only what it keeps for later viewers (calibration, world).
+    /// [`LogWriter::path`] is empty.
+    pub fn live_only(options: LogOptions) -> Result<Self, LogError> {
+        options.validate()?;
+        if options.live.is_none() {
+            return Err(LogError::Option { name: "live", problem: "is needed by a logger without a file".into() });
+        }
+        let kind = options.kind.clone();
+        Self::spawn(None, PathBuf::new(), kind, PathBuf::new(), options)
+    }
+
     fn start(file: File, path: PathBuf, stem: String, dir: PathBuf, options: LogOptions) -> Result<Self, LogError> {
+        Self::spawn(Some(file), path, stem, dir, options)
+    }
+
+    fn spawn(
+        file: Option<File>,
+        path: PathBuf,
+        stem: String,
+        dir: PathBuf,
+        options: LogOptions,
+    ) -> Result<Self, LogError> {
         let (tx, rx) = crossbeam_channel::unbounded();
         let shared = Arc::new(Shared {
             caps: [options.image_queue, options.data_queue, options.critical_queue],
@@ -319,7 +342,7 @@ impl LogWriter {
         self.handle.clone()
     }
 
-    /// The first (or only) file of this log.
+    /// The first (or only) file of this log (empty for [`LogWriter::live_only`]).
     pub fn path(&self) -> &Path {
         &self.path
     }
@@ -520,11 +543,13 @@ struct Worker {
     last_log_time: Option<u64>,
     error: Option<LogError>,
     buf: Vec<u8>,
+    /// No file: the messages only go to the live view.
+    live_only: bool,
 }
 
 impl Worker {
     fn run(
-        file: File,
+        file: Option<File>,
         path: PathBuf,
         naming: Naming,
         options: LogOptions,
@@ -545,14 +570,16 @@ impl Worker {
             last_log_time: None,
             error: None,
             buf: Vec::new(),
+            live_only: false,
             options,
         };
-        match Part::open(file, path.clone(), &w.options, 1) {
-            Ok(p) => {
+        match file.map(|file| Part::open(file, path.clone(), &w.options, 1)) {
+            Some(Ok(p)) => {
                 w.files.push(path);
                 w.part = Some(p);
             }
-            Err(e) => w.fail(e),
+            Some(Err(e)) => w.fail(e),
+            None => w.live_only = true,
         }
         let mut next_flush = Instant::now() + w.options.flush_interval;
         loop {
@@ -593,7 +620,18 @@ impl Worker {
         LoggerStats { written: self.written, ..self.shared.stats() }
     }
 
+    /// Writes one message to the file and offers it to the live view.
     fn emit(&mut self, topic: Topic, t_ns: u64, data: &[u8]) {
+        self.write(topic, t_ns, data);
+        if let Some(live) = &self.options.live {
+            live.offer(topic, t_ns.saturating_add(self.options.time_offset_ns), data, false);
+        }
+    }
+
+    fn write(&mut self, topic: Topic, t_ns: u64, data: &[u8]) {
+        if self.live_only {
+            return;
+        }
         let log_time = t_ns.saturating_add(self.options.time_offset_ns);
         let Some(part) = self.part.as_mut() else {
             self.shared.lost.fetch_add(1, Ordering::Relaxed);
@@ -612,11 +650,19 @@ impl Worker {
 
     fn latch(&mut self, topic: Topic, t_ns: u64, data: Vec<u8>) {
         self.latched.retain(|(tp, _, _)| *tp != topic);
-        self.emit(topic, t_ns, &data);
+        self.write(topic, t_ns, &data);
+        if let Some(live) = &self.options.live {
+            live.offer(topic, t_ns.saturating_add(self.options.time_offset_ns), &data, true);
+        }
         self.latched.push((topic, t_ns, data));
     }
 
     fn handle(&mut self, item: Item) {
+        let kept = matches!(item, Item::Calibration { .. } | Item::World { .. });
+        if self.live_only && !kept && !self.options.live.as_ref().is_some_and(LiveSink::has_clients) {
+            // Nobody to show it to and no file: skip the encoding.
+            return;
+        }
         let offset = self.options.time_offset_ns;
         match item {
             Item::Jpeg { t, data } => {
@@ -729,7 +775,7 @@ impl Worker {
                 self.files.push(path);
                 self.part = Some(p);
                 for (topic, t, data) in std::mem::take(&mut self.latched) {
-                    self.emit(topic, t, &data);
+                    self.write(topic, t, &data);
                     self.latched.push((topic, t, data));
                 }
             }
@@ -749,7 +795,7 @@ impl Worker {
         self.flush_pending_flow();
         if let Some(t) = self.last_log_time {
             let s = self.stats();
-            let line = format!(
+            let mut line = format!(
                 "logger closed: {} messages written, dropped {} images, {} data, {} critical, {} lost",
                 s.written + 1,
                 s.dropped_images,
@@ -757,6 +803,10 @@ impl Worker {
                 s.dropped_critical,
                 s.lost
             );
+            if let Some(live) = &self.options.live {
+                let l = live.stats();
+                line.push_str(&format!("; live view: {} sent, {} dropped", l.sent, l.dropped));
+            }
             let level = if s.dropped() > 0 { LogLevel::Warning } else { LogLevel::Info };
             let data = encode::log_line(t, level, &line);
             self.emit(Topic::Log, t.saturating_sub(self.options.time_offset_ns), &data);

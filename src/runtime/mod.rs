@@ -190,6 +190,10 @@ pub struct RunReport {
     pub link: LinkStats,
     /// `link.disconnects`, for the JSON summary.
     pub base_disconnects: u64,
+    /// The live view's messages sent and dropped (`run --live`; filled in by the caller, which
+    /// owns the server).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub live: Option<crate::logging::LiveStats>,
 }
 
 /// Why a run failed. In every case the base was told to stop before `run` returned.
@@ -347,6 +351,7 @@ where
         step_cpu: step_times.1.summary(),
         link,
         base_disconnects: link.disconnects,
+        live: None,
     };
     let ended = match &result {
         Ok(e) => *e,
