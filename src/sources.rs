@@ -124,6 +124,8 @@ pub struct FolderCamera {
     /// Laps completed (looping only).
     lap: u64,
     start_ns: Option<u64>,
+    /// How long the last frame took to load, ns (paced playback starts the next one that early).
+    decode_ns: u64,
     paced: bool,
     looping: bool,
 }
@@ -142,7 +144,7 @@ impl FolderCamera {
                 (0..folder.images.len()).map(|i| i as f64 / fps).collect()
             }
         };
-        Ok(Self { folder, offsets_s, next: 0, lap: 0, start_ns: None, paced: true, looping: false })
+        Ok(Self { folder, offsets_s, next: 0, lap: 0, start_ns: None, decode_ns: 0, paced: true, looping: false })
     }
 
     /// Whether playback starts over after the last frame (default: it ends there).
@@ -199,7 +201,18 @@ impl Camera for FolderCamera {
         let lap_ns = (self.lap_s() * 1e9).round() as u64;
         let t_ns = start + self.lap * lap_ns + (self.offsets_s[index] * 1e9).round() as u64;
         let seq = self.lap * self.len() as u64 + index as u64;
+        if self.paced {
+            // Decode just before the frame is due, as a camera's frame arrives then, instead of
+            // right after the previous one, while the step of that one wants the cores.
+            let lead = self.decode_ns.saturating_mul(3) / 2 + 1_000_000;
+            let now = monotonic_ns();
+            if t_ns.saturating_sub(lead) > now {
+                std::thread::sleep(Duration::from_nanos(t_ns - lead - now));
+            }
+        }
+        let started = monotonic_ns();
         let image = load_luma(&path).map_err(|source| SourceError::Frame { index, path: path.clone(), source })?;
+        self.decode_ns = monotonic_ns().saturating_sub(started);
         if self.paced {
             let now = monotonic_ns();
             if t_ns > now {

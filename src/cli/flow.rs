@@ -47,6 +47,10 @@ pub struct Args {
     /// min, median and p90 in milliseconds, with the engine and the adapter it ran on.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=100_000))]
     pub repeat: Option<u32>,
+    /// Threads the CPU engine splits the pair over, 0 = one per core up to 4 (overrides
+    /// flow.cpu_threads; 1 compares with single-threaded tools).
+    #[arg(long, value_name = "N")]
+    pub threads: Option<usize>,
 }
 
 impl Args {
@@ -59,6 +63,7 @@ impl Args {
         set(&mut p.rows, self.rows);
         set(&mut p.cols, self.cols);
         set(&mut p.block, self.block);
+        set(&mut p.cpu_threads, self.threads);
         set(&mut p.radius, self.radius);
         set(&mut p.pyramid_levels, self.pyramid_levels);
         if let Some(pl) = self.placement {
@@ -103,9 +108,9 @@ pub struct Timing {
     pub median_ms: f64,
     pub p90_ms: f64,
     pub mean_ms: f64,
-    /// The same per-call figures in CPU time of the calling thread (`CLOCK_THREAD_CPUTIME_ID`):
-    /// what one core spends per pair on the CPU engine, unaffected by other processes on a
-    /// shared machine; for the GPU engine, the host's share only.
+    /// The same per-call figures in CPU time of the process (`CLOCK_PROCESS_CPUTIME_ID`, all
+    /// the engine's threads together): what the cores spend per pair on the CPU engine,
+    /// unaffected by other processes on a shared machine; for the GPU engine, the host's share.
     pub cpu_min_ms: f64,
     pub cpu_median_ms: f64,
     pub cpu_p90_ms: f64,
@@ -151,8 +156,8 @@ fn stats(mut v: Vec<f64>) -> (f64, f64, f64) {
 }
 
 /// CPU time of the calling thread, ms.
-fn thread_cpu_ms() -> f64 {
-    nix::time::clock_gettime(nix::time::ClockId::CLOCK_THREAD_CPUTIME_ID)
+fn process_cpu_ms() -> f64 {
+    nix::time::clock_gettime(nix::time::ClockId::CLOCK_PROCESS_CPUTIME_ID)
         .map_or(0.0, |t| t.tv_sec() as f64 * 1e3 + t.tv_nsec() as f64 * 1e-6)
 }
 
@@ -203,12 +208,12 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         }
         let (mut wall, mut cpu) = (Vec::with_capacity(n as usize), Vec::with_capacity(n as usize));
         for _ in 0..n {
-            let (t0, c0) = (Instant::now(), thread_cpu_ms());
+            let (t0, c0) = (Instant::now(), process_cpu_ms());
             engine.compute(&a, &b).with_context(context)?;
-            cpu.push(thread_cpu_ms() - c0);
+            cpu.push(process_cpu_ms() - c0);
             wall.push(t0.elapsed().as_secs_f64() * 1e3);
         }
-        let adapter = report.adapter.clone().unwrap_or_else(|| cpu_adapter(&cfg.flow));
+        let adapter = report.adapter.clone().unwrap_or_else(|| cpu_adapter(&cfg.flow, engine.threads()));
         timing = Some(Timing::new(wall, cpu, WARMUP, backend, adapter));
     }
     let t0 = Instant::now();
@@ -221,7 +226,7 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
         if let Some(t) = &timing {
             println!(
                 "{} repeats on {} ({}): min {:.3} ms, median {:.3} ms, p90 {:.3} ms per pair \
-                 (thread CPU time: min {:.3}, median {:.3}, p90 {:.3} ms)",
+                 (process CPU time: min {:.3}, median {:.3}, p90 {:.3} ms)",
                 t.n, t.engine, t.adapter, t.min_ms, t.median_ms, t.p90_ms, t.cpu_min_ms, t.cpu_median_ms, t.cpu_p90_ms
             );
         }
@@ -235,8 +240,8 @@ pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The CPU the CPU engine runs on, and its SAD kernel: "MODEL (avx2 SAD, one thread)".
-fn cpu_adapter(p: &FlowParams) -> String {
+/// The CPU the CPU engine runs on, its SAD kernel and threads: "MODEL (avx2 SAD, 1 thread)".
+fn cpu_adapter(p: &FlowParams, threads: usize) -> String {
     let model = std::fs::read_to_string("/proc/cpuinfo")
         .ok()
         .and_then(|s| {
@@ -246,7 +251,8 @@ fn cpu_adapter(p: &FlowParams) -> String {
                 .map(|(_, m)| m.trim().to_string())
         })
         .unwrap_or_else(|| std::env::consts::ARCH.to_string());
-    format!("{model} ({} SAD, one thread)", flow::sad::Kernel::detect(p.block).name())
+    let plural = if threads == 1 { "" } else { "s" };
+    format!("{model} ({} SAD, {threads} thread{plural})", flow::sad::Kernel::detect(p.block).name())
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {

@@ -181,7 +181,12 @@ impl Aggregate {
 }
 
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
-    let config = common.config()?;
+    let mut config = common.config()?;
+    // The simulator's parallelism is whole runs (`--jobs`), one per core: a run's flow stays on
+    // its own thread unless the config asks otherwise.
+    if config.flow.cpu_threads == 0 {
+        config.flow.cpu_threads = 1;
+    }
     let calib = common.calibration()?.scaled_to(args.size.0, args.size.1);
     let world = match &args.world {
         Some(path) => World::load(path)?,

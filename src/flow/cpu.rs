@@ -44,9 +44,33 @@ pub struct CpuFlow {
     disp: Vec<(i32, i32)>,
     prev: Vec<(i32, i32)>,
     flags: Vec<(bool, bool)>,
+    /// One per band of block rows; band `k` runs on thread `k`.
+    bands: Vec<Band>,
+    /// The worker threads for more than one band (`FlowParams::cpu_threads`).
+    pool: Option<rayon::ThreadPool>,
+    field: FlowField,
+}
+
+/// The buffers of one band of block rows.
+#[derive(Debug, Default)]
+struct Band {
     block_buf: Vec<u8>,
     costs: Vec<u32>,
-    field: FlowField,
+    vectors: Vec<FlowVector>,
+}
+
+/// What every block of one pyramid level shares.
+struct LevelJob<'a> {
+    params: &'a FlowParams,
+    lev: &'a Level,
+    l: usize,
+    coarsest: bool,
+    kernel: Kernel,
+    origins: &'a [(usize, usize)],
+    /// The coarser level's displacements (all blocks).
+    prev: &'a [(i32, i32)],
+    rows: usize,
+    cols: usize,
 }
 
 impl CpuFlow {
@@ -54,7 +78,28 @@ impl CpuFlow {
     pub fn new(params: FlowParams) -> Result<Self, FlowError> {
         params.validate()?;
         let kernel = Kernel::detect(params.block);
-        Ok(Self::with_kernel(params, kernel))
+        let mut engine = Self::with_kernel(params, kernel);
+        engine.set_threads(engine.params.cpu_threads)?;
+        Ok(engine)
+    }
+
+    /// Splits each frame pair over `threads` threads (0 = one per core, up to 4): the calling
+    /// thread and `threads − 1` workers. The result is the same for any count. Errors only when
+    /// the workers cannot be started.
+    pub fn set_threads(&mut self, threads: usize) -> Result<(), FlowError> {
+        let n = if threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get().min(4)) } else { threads };
+        self.pool = if n > 1 {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(n - 1)
+                .thread_name(|i| format!("flownav-flow-{i}"))
+                .build()
+                .map_err(|e| FlowError::Threads { threads: n, message: e.to_string() })?;
+            Some(pool)
+        } else {
+            None
+        };
+        self.bands.resize_with(n, Band::default);
+        Ok(())
     }
 
     /// Like [`CpuFlow::new`] with an explicit SAD kernel (tests and benchmarks compare them).
@@ -79,8 +124,8 @@ impl CpuFlow {
             disp: Vec::new(),
             prev: Vec::new(),
             flags: Vec::new(),
-            block_buf: Vec::new(),
-            costs: Vec::new(),
+            bands: vec![Band::default()],
+            pool: None,
             field: FlowField::default(),
         }
     }
@@ -105,10 +150,14 @@ impl FlowEngine for CpuFlow {
         &self.params
     }
 
+    fn threads(&self) -> usize {
+        self.bands.len()
+    }
+
     fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError> {
         super::check_frames(&self.params, a, b)?;
         let p = &self.params;
-        let (w, h, bs) = (a.width(), a.height(), p.block);
+        let (w, h) = (a.width(), a.height());
         let nlev = self.levels.len();
 
         // Pyramid and prefilter: each frame once per level.
@@ -135,7 +184,6 @@ impl FlowEngine for CpuFlow {
         self.disp.resize(n, (0, 0));
         self.flags.clear();
         self.flags.resize(n, (false, false));
-        self.block_buf.resize(bs * bs, 0);
         let (rows, cols) = p.grid(w, h);
         self.field.rows = rows;
         self.field.cols = cols;
@@ -143,70 +191,119 @@ impl FlowEngine for CpuFlow {
         self.field.height = h;
         self.field.vectors.clear();
 
-        let amb_q8 = p.ambiguity_q8();
+        // Bands of whole block rows; a band's first row has no upper neighbour to take a
+        // predictor from, which changes the order of the search, never its result.
+        let band_rows = rows.div_ceil(self.bands.len()).max(1);
         for l in (0..nlev).rev() {
-            let lev = &self.levels[l];
-            let (wl, hl) = (lev.hp_a.width(), lev.hp_a.height());
-            let coarsest = l == nlev - 1;
-            let radius = if coarsest { p.radius } else { p.refine_radius } as i32;
-            let bl = super::level_block(bs, l);
-            let kernel = self.kernels[l];
             self.prev.clone_from(&self.disp);
-            for i in 0..n {
-                let (r, c) = (i / cols, i % cols);
-                let (ox, oy) = self.origins[i];
-                let x0 = level_origin(ox, bs, bl, l, wl);
-                let y0 = level_origin(oy, bs, bl, l, hl);
-                let centre = if coarsest {
-                    (0, 0)
-                } else {
-                    let m = median3x3(&self.prev, rows, cols, r, c);
-                    (2 * m.0, 2 * m.1)
-                };
-                let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
-                let blk = &mut self.block_buf[..bl * bl];
-                copy_block(&lev.hp_a, x0, y0, bl, blk);
-                let mut preds = [None; 3];
-                preds[0] = Some(win.centre);
-                if c > 0 {
-                    preds[1] = Some(self.disp[i - 1]);
-                }
-                if r > 0 {
-                    preds[2] = Some(self.disp[i - cols]);
-                }
-                let query = Query { a: blk, b: &lev.hp_b, x0, y0, block: bl, win, preds, amb_q8 };
-                let found = search(kernel, &query, &mut self.costs);
-                self.disp[i] = found.d;
-                self.flags[i].0 |= found.edge;
-                self.flags[i].1 |= found.ambiguous;
-                if l == 0 {
-                    let st = level0_stats(kernel, &self.block_buf, &lev.hp_b, x0, y0, bs, &win, found.d);
-                    let textureless = 16 * st.texture < p.min_texture_q4() * (2 * bs * (bs - 1)) as u64;
-                    let validity = if textureless {
-                        Validity::Textureless
-                    } else if self.flags[i].0 {
-                        Validity::OutOfFrame
-                    } else if self.flags[i].1 {
-                        Validity::Ambiguous
-                    } else {
-                        Validity::Valid
-                    };
-                    let d = found.d;
-                    let [xm, xp, ym, yp] = st.ssd_neighbours;
-                    let du = parabola(xm, st.ssd, xp);
-                    let dv = parabola(ym, st.ssd, yp);
-                    self.field.vectors.push(FlowVector {
-                        x: (ox + bs / 2) as f32,
-                        y: (oy + bs / 2) as f32,
-                        u: (f64::from(d.0) + du) as f32,
-                        v: (f64::from(d.1) + dv) as f32,
-                        validity,
-                        cost: found.cost as f32 / (bs * bs) as f32,
-                    });
-                }
+            let job = LevelJob {
+                params: p,
+                lev: &self.levels[l],
+                l,
+                coarsest: l == nlev - 1,
+                kernel: self.kernels[l],
+                origins: &self.origins,
+                prev: &self.prev,
+                rows,
+                cols,
+            };
+            let work = self
+                .disp
+                .chunks_mut(band_rows * cols)
+                .zip(self.flags.chunks_mut(band_rows * cols))
+                .zip(self.bands.iter_mut())
+                .enumerate()
+                .map(|(k, ((disp, flags), band))| (k * band_rows * cols, disp, flags, band));
+            match &self.pool {
+                // The first band on this thread, the others on the workers.
+                Some(pool) => pool.in_place_scope(|scope| {
+                    let mut work = work;
+                    let mine = work.next();
+                    for (first, disp, flags, band) in work {
+                        let job = &job;
+                        scope.spawn(move |_| job.run(first, disp, flags, band));
+                    }
+                    if let Some((first, disp, flags, band)) = mine {
+                        job.run(first, disp, flags, band);
+                    }
+                }),
+                None => work.for_each(|(first, disp, flags, band)| job.run(first, disp, flags, band)),
             }
         }
+        let used = rows.div_ceil(band_rows);
+        for band in &self.bands[..used] {
+            self.field.vectors.extend_from_slice(&band.vectors);
+        }
         Ok(&self.field)
+    }
+}
+
+impl LevelJob<'_> {
+    /// Searches the blocks `first..first + disp.len()` (whole rows) at this level.
+    fn run(&self, first: usize, disp: &mut [(i32, i32)], flags: &mut [(bool, bool)], band: &mut Band) {
+        let (p, lev, l, cols) = (self.params, self.lev, self.l, self.cols);
+        let bs = p.block;
+        let (wl, hl) = (lev.hp_a.width(), lev.hp_a.height());
+        let radius = if self.coarsest { p.radius } else { p.refine_radius } as i32;
+        let bl = super::level_block(bs, l);
+        let kernel = self.kernel;
+        let amb_q8 = p.ambiguity_q8();
+        band.block_buf.resize(bs * bs, 0);
+        band.vectors.clear();
+        for j in 0..disp.len() {
+            let i = first + j;
+            let (r, c) = (i / cols, i % cols);
+            let (ox, oy) = self.origins[i];
+            let x0 = level_origin(ox, bs, bl, l, wl);
+            let y0 = level_origin(oy, bs, bl, l, hl);
+            let centre = if self.coarsest {
+                (0, 0)
+            } else {
+                let m = median3x3(self.prev, self.rows, cols, r, c);
+                (2 * m.0, 2 * m.1)
+            };
+            let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
+            let blk = &mut band.block_buf[..bl * bl];
+            copy_block(&lev.hp_a, x0, y0, bl, blk);
+            let mut preds = [None; 3];
+            preds[0] = Some(win.centre);
+            if c > 0 {
+                preds[1] = Some(disp[j - 1]);
+            }
+            if j >= cols {
+                preds[2] = Some(disp[j - cols]);
+            }
+            let query = Query { a: blk, b: &lev.hp_b, x0, y0, block: bl, win, preds, amb_q8 };
+            let found = search(kernel, &query, &mut band.costs);
+            disp[j] = found.d;
+            flags[j].0 |= found.edge;
+            flags[j].1 |= found.ambiguous;
+            if l == 0 {
+                let st = level0_stats(kernel, &band.block_buf, &lev.hp_b, x0, y0, bs, &win, found.d);
+                let textureless = 16 * st.texture < p.min_texture_q4() * (2 * bs * (bs - 1)) as u64;
+                let validity = if textureless {
+                    Validity::Textureless
+                } else if flags[j].0 {
+                    Validity::OutOfFrame
+                } else if flags[j].1 {
+                    Validity::Ambiguous
+                } else {
+                    Validity::Valid
+                };
+                let d = found.d;
+                let [xm, xp, ym, yp] = st.ssd_neighbours;
+                let du = parabola(xm, st.ssd, xp);
+                let dv = parabola(ym, st.ssd, yp);
+                band.vectors.push(FlowVector {
+                    x: (ox + bs / 2) as f32,
+                    y: (oy + bs / 2) as f32,
+                    u: (f64::from(d.0) + du) as f32,
+                    v: (f64::from(d.1) + dv) as f32,
+                    validity,
+                    cost: found.cost as f32 / (bs * bs) as f32,
+                });
+            }
+        }
     }
 }
 
@@ -301,8 +398,8 @@ pub(crate) struct Stats {
     pub ssd_neighbours: [Option<u64>; 4],
 }
 
-/// [`Stats`] of the block `a` at (x0, y0) matched at `d` in `b`; compiled for AVX2 when the
-/// search kernel is AVX2 (the sums then vectorise 256 bits wide).
+/// [`Stats`] of the block `a` at (x0, y0) matched at `d` in `b`; on 256-bit vectors when the
+/// search kernel is AVX2 (the same integers).
 #[allow(clippy::too_many_arguments)]
 fn level0_stats(
     kernel: Kernel,
@@ -316,15 +413,22 @@ fn level0_stats(
 ) -> Stats {
     #[cfg(target_arch = "x86_64")]
     if kernel == Kernel::Avx2 {
-        // SAFETY: an AVX2 kernel is only constructed where the CPU supports AVX2.
+        // SAFETY: an AVX2 kernel is only constructed where the CPU supports AVX2, for blocks
+        // whose width is a multiple of 32.
         return unsafe { level0_stats_avx2(a, b, x0, y0, block, win, d) };
     }
     let _ = kernel;
-    level0_stats_impl(a, b, x0, y0, block, win, d)
+    let (stride, data) = (b.width(), b.data());
+    let ssd_at = |e: (i32, i32)| sad::ssd_scalar(a, data, window_offset(x0, y0, stride, e), stride, block);
+    Stats {
+        texture: sad::texture_scalar(a, block),
+        ssd: ssd_at(d),
+        ssd_neighbours: neighbours(win, d).map(|e| e.map(ssd_at)),
+    }
 }
 
 /// # Safety
-/// The CPU must support AVX2.
+/// The CPU must support AVX2 and `block.is_multiple_of(32)`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn level0_stats_avx2(
@@ -336,56 +440,39 @@ unsafe fn level0_stats_avx2(
     win: &Window,
     d: (i32, i32),
 ) -> Stats {
-    level0_stats_impl(a, b, x0, y0, block, win, d)
-}
-
-#[inline(always)]
-fn level0_stats_impl(
-    a: &[u8],
-    b: &LumaImage,
-    x0: usize,
-    y0: usize,
-    block: usize,
-    win: &Window,
-    d: (i32, i32),
-) -> Stats {
-    // Plain loops, no closures: a closure would not be compiled with the caller's AVX2.
+    let (stride, data) = (b.width(), b.data());
+    assert!(a.len() >= block * block, "block buffer too small");
+    // Every displacement asked for lies in the window, whose blocks are all inside frame B.
+    assert!(window_offset(x0, y0, stride, win.hi) + (block - 1) * stride + block <= data.len());
+    // A macro, not a closure, so that the vector code inlines into this AVX2-enabled function.
+    macro_rules! ssd_at {
+        ($e:expr) => {
+            // SAFETY: AVX2 and the block width are the caller's contract; the reads lie inside
+            // `a` and `data` (asserted above; only displacements in the window are asked for).
+            unsafe { sad::avx2::ssd(a.as_ptr(), data.as_ptr().add(window_offset(x0, y0, stride, $e)), stride, block) }
+        };
+    }
     let mut ssd_neighbours = [None; 4];
-    for (n, e) in [(d.0 - 1, d.1), (d.0 + 1, d.1), (d.0, d.1 - 1), (d.0, d.1 + 1)].into_iter().enumerate() {
-        if win.contains(e) {
-            ssd_neighbours[n] = Some(ssd(a, b, x0, y0, block, e));
+    for (out, e) in ssd_neighbours.iter_mut().zip(neighbours(win, d)) {
+        if let Some(e) = e {
+            *out = Some(ssd_at!(e));
         }
     }
-    Stats { texture: texture(a, block), ssd: ssd(a, b, x0, y0, block, d), ssd_neighbours }
+    // SAFETY: as above, for the block `a`.
+    let texture = unsafe { sad::avx2::texture(a.as_ptr(), block) };
+    Stats { texture, ssd: ssd_at!(d), ssd_neighbours }
 }
 
-/// Gradient energy of a block: Σ|a(x+1,y) − a(x,y)| + Σ|a(x,y+1) − a(x,y)|.
+/// Byte offset in frame B (rows `stride` apart) of the block at (x0, y0) moved by `d`.
 #[inline(always)]
-pub(crate) fn texture(a: &[u8], block: usize) -> u64 {
-    let mut g = 0u64;
-    for y in 0..block {
-        let row = &a[y * block..(y + 1) * block];
-        g += u64::from(row.windows(2).map(|p| u32::from(p[0].abs_diff(p[1]))).sum::<u32>());
-        if y + 1 < block {
-            let next = &a[(y + 1) * block..(y + 2) * block];
-            g += u64::from(row.iter().zip(next).map(|(&p, &q)| u32::from(p.abs_diff(q))).sum::<u32>());
-        }
-    }
-    g
+fn window_offset(x0: usize, y0: usize, stride: usize, d: (i32, i32)) -> usize {
+    (y0 as i32 + d.1) as usize * stride + (x0 as i32 + d.0) as usize
 }
 
-/// Sum of squared differences between block `a` and the block of `b` at (x0+dx, y0+dy): the
-/// cost the sub-pixel fit uses (SSD is quadratic in a small shift, SAD is V-shaped and would
-/// bias a parabola towards the integer).
+/// d − (1,0), d + (1,0), d − (0,1), d + (0,1) where they lie in the window.
 #[inline(always)]
-pub(crate) fn ssd(a: &[u8], b: &LumaImage, x0: usize, y0: usize, block: usize, d: (i32, i32)) -> u64 {
-    let (bx, by) = ((x0 as i32 + d.0) as usize, (y0 as i32 + d.1) as usize);
-    let mut s = 0u64;
-    for (y, ar) in a.chunks_exact(block).take(block).enumerate() {
-        let br = &b.row(by + y)[bx..bx + block];
-        s += u64::from(ar.iter().zip(br).map(|(&p, &q)| (i32::from(p) - i32::from(q)).pow(2) as u32).sum::<u32>());
-    }
-    s
+fn neighbours(win: &Window, d: (i32, i32)) -> [Option<(i32, i32)>; 4] {
+    [(d.0 - 1, d.1), (d.0 + 1, d.1), (d.0, d.1 - 1), (d.0, d.1 + 1)].map(|e| win.contains(e).then_some(e))
 }
 
 /// Sub-pixel offset along one axis by a parabola through the SSD at −1, 0, +1:
@@ -696,6 +783,28 @@ mod tests {
     }
 
     /// Motion beyond the radius is found with the pyramid; without it the block is flagged.
+    /// Bands of block rows on several threads give the field of one thread, bit for bit, with
+    /// and without the pyramid (including more threads than rows).
+    #[test]
+    fn threads_do_not_change_the_field() {
+        let t = texture_fn(11);
+        let a = LumaImage::from_fn(320, 240, |x, y| t(x as i64, y as i64));
+        let b = LumaImage::from_fn(320, 240, |x, y| t(x as i64 - 5 + (y as i64 / 60), y as i64 + 2 - (x as i64 / 100)));
+        for levels in [1, 2] {
+            let params =
+                FlowParams { rows: 7, cols: 5, block: 32, radius: 8, pyramid_levels: levels, ..FlowParams::default() };
+            let mut one = CpuFlow::new(FlowParams { cpu_threads: 1, ..params.clone() }).unwrap();
+            let want = one.compute(&a, &b).unwrap().clone();
+            for threads in [2, 3, 9] {
+                let mut many = CpuFlow::new(FlowParams { cpu_threads: threads, ..params.clone() }).unwrap();
+                assert_eq!(many.threads(), threads);
+                assert_eq!(many.compute(&a, &b).unwrap(), &want, "{threads} threads, {levels} levels");
+                // and again with the buffers reused
+                assert_eq!(many.compute(&a, &b).unwrap(), &want, "{threads} threads, second pair");
+            }
+        }
+    }
+
     #[test]
     fn pyramid_finds_motion_beyond_radius() {
         let (a, b) = translated(512, 384, 27, -11, 3);

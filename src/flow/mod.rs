@@ -159,6 +159,9 @@ pub struct FlowParams {
     /// A block is `ambiguous` when another local minimum of the cost, at least 2 px away from the
     /// best, costs at most (1 + ambiguity_ratio) × the best cost. Quantised to 1/256.
     pub ambiguity_ratio: f32,
+    /// Threads the CPU engine splits a frame pair over (bands of block rows; the result is the
+    /// same for any count). 0 = one per core, up to 4. The GPU engine ignores it.
+    pub cpu_threads: usize,
 }
 
 impl Default for FlowParams {
@@ -176,6 +179,7 @@ impl Default for FlowParams {
             refine_radius: 4,
             min_texture: 2.0,
             ambiguity_ratio: 0.1,
+            cpu_threads: 0,
         }
     }
 }
@@ -208,6 +212,9 @@ impl FlowParams {
         };
         if self.rows == 0 || self.cols == 0 {
             return bad("rows/cols", "must be at least 1");
+        }
+        if self.cpu_threads > 64 {
+            return bad("cpu_threads", "must be in 0..=64 (0 = one per core, up to 4)");
         }
         if let Some(stride) = self.stride {
             if !(1..=256).contains(&stride) {
@@ -273,6 +280,8 @@ pub enum FlowError {
     Params(#[from] ConfigError),
     #[error("flow backend {0} is not available: {1}")]
     BackendUnavailable(&'static str, String),
+    #[error("cannot start {threads} CPU flow threads: {message}; set flow.cpu_threads = 1")]
+    Threads { threads: usize, message: String },
 }
 
 /// A flow engine: computes the block flow field of a frame pair into a field it owns and reuses
@@ -284,6 +293,10 @@ pub trait FlowEngine: Send {
     fn params(&self) -> &FlowParams;
     /// Flow from frame `a` to frame `b` (same size), following the algorithm contract.
     fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError>;
+    /// CPU threads a pair is computed on.
+    fn threads(&self) -> usize {
+        1
+    }
 }
 
 /// The engine for `params.backend` ([`create_engine`] without the report, which it logs).

@@ -160,6 +160,55 @@ pub fn sad_scalar(a: &[u8], img: &[u8], off: usize, stride: usize, block: usize,
     Some(total)
 }
 
+/// Sum of squared differences between the `block`×`block` block `a` (rows contiguous) and the
+/// window of `img` (rows `stride` bytes apart) whose top-left byte is `img[off]`.
+pub fn ssd_scalar(a: &[u8], img: &[u8], off: usize, stride: usize, block: usize) -> u64 {
+    let mut s = 0u64;
+    for (y, ar) in a.chunks_exact(block).take(block).enumerate() {
+        let br = &img[off + y * stride..off + y * stride + block];
+        s += u64::from(ar.iter().zip(br).map(|(&p, &q)| u32::from(p.abs_diff(q)).pow(2)).sum::<u32>());
+    }
+    s
+}
+
+/// Gradient energy of the `block`×`block` block `a` (rows contiguous):
+/// Σ|a(x+1,y) − a(x,y)| + Σ|a(x,y+1) − a(x,y)|.
+pub fn texture_scalar(a: &[u8], block: usize) -> u64 {
+    let mut g = 0u64;
+    for y in 0..block {
+        let row = &a[y * block..(y + 1) * block];
+        g += u64::from(row.windows(2).map(|p| u32::from(p[0].abs_diff(p[1]))).sum::<u32>());
+        if y + 1 < block {
+            let next = &a[(y + 1) * block..(y + 2) * block];
+            g += u64::from(row.iter().zip(next).map(|(&p, &q)| u32::from(p.abs_diff(q))).sum::<u32>());
+        }
+    }
+    g
+}
+
+/// [`ssd_scalar`] and [`texture_scalar`] on 256-bit vectors, for blocks whose width is a multiple
+/// of 32 on CPUs with AVX2 (the same integers).
+#[cfg(target_arch = "x86_64")]
+pub mod avx2 {
+    /// # Safety
+    /// AVX2 must be available; `block.is_multiple_of(32)`; `a` must point at `block*block`
+    /// readable bytes and `b` at `block` rows of `block` readable bytes, `stride` apart.
+    #[inline(always)]
+    pub unsafe fn ssd(a: *const u8, b: *const u8, stride: usize, block: usize) -> u64 {
+        // SAFETY: forwarded caller contract.
+        unsafe { super::x86::ssd_avx2_inl(a, b, stride, block) }
+    }
+
+    /// # Safety
+    /// AVX2 must be available; `block.is_multiple_of(32)`; `a` must point at `block*block`
+    /// readable bytes.
+    #[inline(always)]
+    pub unsafe fn texture(a: *const u8, block: usize) -> u64 {
+        // SAFETY: forwarded caller contract.
+        unsafe { super::x86::texture_avx2_inl(a, block) }
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::CHECK_ROWS;
@@ -263,6 +312,85 @@ mod x86 {
         }
     }
 
+    /// Σ (a − b)² with 16-bit products summed in 32-bit lanes: a lane takes at most
+    /// 2 × 255² per 32 bytes of a row, so blocks up to 256 px stay far below 2³¹.
+    ///
+    /// # Safety
+    /// As [`sad_avx2`]; inlined into AVX2-enabled callers only.
+    #[inline(always)]
+    pub unsafe fn ssd_avx2_inl(a: *const u8, b: *const u8, stride: usize, block: usize) -> u64 {
+        // SAFETY (whole body): the caller guarantees AVX2 and that every address read is in bounds.
+        unsafe {
+            let zero = _mm256_setzero_si256();
+            let mut acc = _mm256_setzero_si256();
+            for r in 0..block {
+                let (ar, br) = (a.add(r * block), b.add(r * stride));
+                let mut x = 0;
+                while x < block {
+                    let va = _mm256_loadu_si256(ar.add(x) as *const __m256i);
+                    let vb = _mm256_loadu_si256(br.add(x) as *const __m256i);
+                    let d = _mm256_or_si256(_mm256_subs_epu8(va, vb), _mm256_subs_epu8(vb, va));
+                    let (lo, hi) = (_mm256_unpacklo_epi8(d, zero), _mm256_unpackhi_epi8(d, zero));
+                    acc = _mm256_add_epi32(acc, _mm256_madd_epi16(lo, lo));
+                    acc = _mm256_add_epi32(acc, _mm256_madd_epi16(hi, hi));
+                    x += 32;
+                }
+            }
+            // the 8 lanes as 64-bit sums
+            let wide = _mm256_add_epi64(_mm256_unpacklo_epi32(acc, zero), _mm256_unpackhi_epi32(acc, zero));
+            hsum256_u64(wide)
+        }
+    }
+
+    /// Gradient energy: vertical differences as a SAD of consecutive rows; horizontal ones as a
+    /// SAD of each 32-byte chunk against itself moved one byte along (whose first lane then
+    /// pairs the chunk's first byte with 0, taken out again), plus the pairs across chunks.
+    ///
+    /// # Safety
+    /// As [`ssd_avx2_inl`] for the block `a`.
+    #[inline(always)]
+    pub unsafe fn texture_avx2_inl(a: *const u8, block: usize) -> u64 {
+        // SAFETY (whole body): the caller guarantees AVX2 and `block*block` bytes at `a`.
+        unsafe {
+            let mut acc = _mm256_setzero_si256();
+            let mut fix = 0u64;
+            let mut across = 0u64;
+            for r in 0..block {
+                let row = a.add(r * block);
+                let mut x = 0;
+                while x < block {
+                    let v = _mm256_loadu_si256(row.add(x) as *const __m256i);
+                    // w[i] = v[i − 1], w[0] = 0
+                    let t = _mm256_permute2x128_si256::<0x08>(v, v);
+                    let w = _mm256_alignr_epi8::<15>(v, t);
+                    acc = _mm256_add_epi64(acc, _mm256_sad_epu8(v, w));
+                    fix += u64::from(*row.add(x));
+                    if x > 0 {
+                        across += u64::from((*row.add(x)).abs_diff(*row.add(x - 1)));
+                    }
+                    if r + 1 < block {
+                        let below = _mm256_loadu_si256(row.add(block + x) as *const __m256i);
+                        acc = _mm256_add_epi64(acc, _mm256_sad_epu8(v, below));
+                    }
+                    x += 32;
+                }
+            }
+            hsum256_u64(acc) - fix + across
+        }
+    }
+
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    unsafe fn hsum256_u64(v: __m256i) -> u64 {
+        // SAFETY: caller guarantees AVX2.
+        unsafe {
+            let s = _mm_add_epi64(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+            let s = _mm_add_epi64(s, _mm_unpackhi_epi64(s, s));
+            _mm_cvtsi128_si64(s) as u64
+        }
+    }
+
     /// # Safety
     /// As [`sad_avx2`] with `block.is_multiple_of(16)`; SSE2 is always present on x86-64.
     #[inline]
@@ -316,6 +444,29 @@ mod tests {
             if block.is_multiple_of(16) {
                 prop_assert_eq!(Kernel::Sse2.sad(&a, &img, off, stride, block, limit), want);
             }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    proptest! {
+        #[test]
+        fn vector_ssd_and_texture_equal_scalar(seed in any::<u64>(), wide in any::<bool>(), off in 0usize..40, flat in 0u8..3) {
+            if !std::arch::is_x86_feature_detected!("avx2") {
+                return Ok(());
+            }
+            let block = if wide { 64 } else { 32 };
+            let stride = block + 45;
+            let mut s = seed | 1;
+            // flat = 0: noise; 1: all 255 against all 0 (the largest sums); 2: smooth ramps
+            let mut rnd = |i: usize| { s ^= s << 13; s ^= s >> 7; s ^= s << 17; match flat { 0 => (s >> 24) as u8, 1 => 255, _ => (i % 251) as u8 } };
+            let a: Vec<u8> = (0..block * block).map(&mut rnd).collect();
+            let img: Vec<u8> = (0..stride * (block + 2)).map(|i| if flat == 1 { 0 } else { rnd(i * 7) }).collect();
+            // SAFETY: AVX2 checked above; the block and the window lie inside the slices.
+            let (ssd, texture) = unsafe {
+                (avx2::ssd(a.as_ptr(), img.as_ptr().add(off), stride, block), avx2::texture(a.as_ptr(), block))
+            };
+            prop_assert_eq!(ssd, ssd_scalar(&a, &img, off, stride, block));
+            prop_assert_eq!(texture, texture_scalar(&a, block));
         }
     }
 

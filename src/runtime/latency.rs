@@ -21,6 +21,17 @@ pub struct LatencySummary {
     pub max_ms: f64,
 }
 
+/// The histogram at a coarser bin width, for reports: `counts[i]` samples lie in
+/// [i·bin_ms, (i+1)·bin_ms), up to the bin that holds the maximum; samples above the 200 ms range
+/// are counted in `over`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct LatencyBins {
+    pub bin_ms: f64,
+    pub counts: Vec<u64>,
+    /// Samples beyond the histogram's range (200 ms).
+    pub over: u64,
+}
+
 /// The histogram; see the module docs.
 #[derive(Clone, Debug)]
 pub struct LatencyHistogram {
@@ -71,6 +82,17 @@ impl LatencyHistogram {
         Some(self.max_ns)
     }
 
+    /// The counts regrouped into bins of `bin_ns` (a multiple of the 20 µs base bin, else rounded
+    /// down to one), trailing empty bins dropped.
+    pub fn bins(&self, bin_ns: u64) -> LatencyBins {
+        let per = (bin_ns / BIN_NS).max(1) as usize;
+        let mut counts: Vec<u64> = self.bins.chunks(per).map(|c| c.iter().map(|&n| u64::from(n)).sum()).collect();
+        while counts.last() == Some(&0) {
+            counts.pop();
+        }
+        LatencyBins { bin_ms: (per as u64 * BIN_NS) as f64 / 1e6, counts, over: self.overflow }
+    }
+
     pub fn summary(&self) -> LatencySummary {
         // Rounded to the microsecond: finer digits would only be float noise in the report.
         let ms = |ns: Option<u64>| ns.map_or(0.0, |n| (n as f64 / 1e3).round() / 1e3);
@@ -101,6 +123,23 @@ mod tests {
         assert!((s.median_ms - 50.02).abs() < 1e-9, "{s:?}");
         assert!((s.p90_ms - 90.02).abs() < 1e-9, "{s:?}");
         assert_eq!(s.max_ms, 100.0);
+    }
+
+    #[test]
+    fn bins_regroup_every_sample() {
+        let mut h = LatencyHistogram::new();
+        for us in [100u64, 499, 500, 1_250, 1_499, 7_000, 250_000] {
+            h.record(us * 1_000);
+        }
+        let b = h.bins(500_000);
+        assert_eq!(b.bin_ms, 0.5);
+        // [0, 0.5): 0.1, 0.499; [0.5, 1): 0.5; [1, 1.5): 1.25, 1.499; [7, 7.5): 7.0; 250 ms over
+        let mut want = vec![0u64; 15];
+        (want[0], want[1], want[2], want[14]) = (2, 1, 2, 1);
+        assert_eq!(b.counts, want);
+        assert_eq!(b.over, 1);
+        assert_eq!(b.counts.iter().sum::<u64>() + b.over, h.count());
+        assert_eq!(LatencyHistogram::new().bins(500_000).counts, Vec::<u64>::new());
     }
 
     #[test]

@@ -59,7 +59,7 @@ use alarms::Alarms;
 use control::{CameraTrouble, Failsafe, Order, Setpoints, Stepped, Stepper, camera_trouble, panic_message};
 use hal::camera::monotonic_ns;
 use hal::{BaseEvent, BodyVelocity, Camera, Error, ErrorKind, LinkStats, MotorBase};
-use latency::{LatencyHistogram, LatencySummary};
+use latency::{LatencyBins, LatencyHistogram, LatencySummary};
 use odometry::OdometryHistory;
 use serde::Serialize;
 use slot::{Closed, FrameSlot, Taken};
@@ -180,8 +180,16 @@ pub struct RunReport {
     pub status_events: u64,
     /// Capture → `set_velocity` returned, for every set-point computed from a frame.
     pub latency: LatencySummary,
+    /// The latency's distribution: the count of set-points per `bin_ms` bin from 0 ms.
+    pub latency_histogram: LatencyBins,
+    /// The first part of the latency: capture stamp → the step thread takes the frame (for a
+    /// camera, decoding; then the hand-over and any wait for the step thread).
+    pub latency_wait: LatencySummary,
     /// Wall-clock time of `Pipeline::step` per frame (the part of the latency that is the step).
     pub step_wall: LatencySummary,
+    /// The last part of the latency: the step's end → `set_velocity` returned (the channel to
+    /// the control task, its wake-up, the alarm gate and the driver).
+    pub latency_deliver: LatencySummary,
     /// CPU time of the step thread per step (`CLOCK_THREAD_CPUTIME_ID`): what the step costs on
     /// an idle core, where `step_wall` also counts waiting for a core on a loaded machine.
     pub step_cpu: LatencySummary,
@@ -218,6 +226,9 @@ enum Msg {
     Setpoint {
         seq: u64,
         t_ns: u64,
+        /// When the step thread took the frame and when its step ended (monotonic ns).
+        taken_ns: u64,
+        stepped_ns: u64,
         setpoint: BodyVelocity,
     },
     StepFailed {
@@ -347,6 +358,9 @@ where
         odometry_events: control.odometry_events,
         status_events: control.status_events,
         latency: control.latency.summary(),
+        latency_histogram: control.latency.bins(LATENCY_BIN_NS),
+        latency_wait: control.wait.summary(),
+        latency_deliver: control.deliver.summary(),
         step_wall: step_times.0.summary(),
         step_cpu: step_times.1.summary(),
         link,
@@ -359,7 +373,9 @@ where
     };
     let r = report(ended);
     tracing::info!(
+        wait_median_ms = r.latency_wait.median_ms,
         step_wall_median_ms = r.step_wall.median_ms,
+        deliver_median_ms = r.latency_deliver.median_ms,
         step_cpu_median_ms = r.step_cpu.median_ms,
         frames = r.frames_processed,
         dropped = r.frames_dropped,
@@ -398,6 +414,10 @@ struct Control {
     setpoints: Setpoints,
     alarms: Alarms,
     latency: LatencyHistogram,
+    /// The parts of the latency before and after the step ([`RunReport::latency_wait`],
+    /// [`RunReport::latency_deliver`]).
+    wait: LatencyHistogram,
+    deliver: LatencyHistogram,
     sent: u64,
     refused: u64,
     odometry_events: u64,
@@ -406,6 +426,10 @@ struct Control {
     events_failing: bool,
     last_status: Option<hal::BaseStatus>,
 }
+
+/// Bin width of the latency histogram in the run report: fine enough to show a 1 ms budget's
+/// share, coarse enough to stay a short line.
+const LATENCY_BIN_NS: u64 = 500_000;
 
 /// A tokio instant for a time on the monotonic clock frames are stamped with.
 fn instant_at(t_ns: u64) -> Instant {
@@ -426,6 +450,8 @@ impl Control {
             alarms: Alarms::new(opts.alarm_hold, logger.clone()),
             logger,
             latency: LatencyHistogram::new(),
+            wait: LatencyHistogram::new(),
+            deliver: LatencyHistogram::new(),
             sent: 0,
             refused: 0,
             odometry_events: 0,
@@ -514,14 +540,17 @@ impl Control {
 
     fn on_msg<B: MotorBase>(&mut self, base: &mut B, msg: Msg) -> Option<Result<EndReason, RuntimeError>> {
         match msg {
-            Msg::Setpoint { seq, t_ns, setpoint } => {
+            Msg::Setpoint { seq, t_ns, taken_ns, stepped_ns, setpoint } => {
                 if self.setpoints.on_setpoint(seq, t_ns, setpoint, monotonic_ns()) == Order::Stop {
                     self.send(base, BodyVelocity::ZERO);
                     return None;
                 }
                 if self.send(base, setpoint) {
-                    let latency = monotonic_ns().saturating_sub(t_ns);
+                    let now = monotonic_ns();
+                    let latency = now.saturating_sub(t_ns);
                     self.latency.record(latency);
+                    self.wait.record(taken_ns.saturating_sub(t_ns));
+                    self.deliver.record(now.saturating_sub(stepped_ns));
                     tracing::debug!(
                         seq,
                         v = setpoint.v,
@@ -625,6 +654,7 @@ fn step_loop(
                 return;
             }
         };
+        let taken_ns = monotonic_ns();
         let velocity = stepper.velocity_for(&shared.odometry.lock().unwrap_or_else(|e| e.into_inner()), frame.t_ns);
         let encoded = match shared.encoded.lock().unwrap_or_else(|e| e.into_inner()).take() {
             Some((s, jpeg)) if s == frame.seq => Some(jpeg),
@@ -639,7 +669,9 @@ fn step_loop(
         }
         shared.counters.processed.fetch_add(1, Ordering::Relaxed);
         let msg = match stepped {
-            Stepped::Output { seq, t_ns, output, .. } => Msg::Setpoint { seq, t_ns, setpoint: output.setpoint() },
+            Stepped::Output { seq, t_ns, output, .. } => {
+                Msg::Setpoint { seq, t_ns, taken_ns, stepped_ns: monotonic_ns(), setpoint: output.setpoint() }
+            }
             Stepped::Primed => continue,
             Stepped::Failed { seq, error, .. } => {
                 shared.counters.step_failures.fetch_add(1, Ordering::Relaxed);
