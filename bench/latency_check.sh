@@ -18,6 +18,7 @@
 #   RUNS=3          runs per binary and backend
 #   FRAMES=DIR      the frame folder (rendered with BIN when it does not exist; default
 #                   /tmp/flownav_latency_frames)
+#   FLOWNAV_ARGS    global flownav options for every `run` of BIN, e.g. "--config F"
 # Results also go to $OUT/latency.jsonl when OUT is set.
 set -u
 BIN=$(realpath "$1")
@@ -28,6 +29,7 @@ BACKENDS=${BACKENDS-cpu}
 RUNS=${RUNS-3}
 FRAMES=${FRAMES-/tmp/flownav_latency_frames}
 RESULTS=${OUT:+$OUT/latency.jsonl}
+read -r -a EXTRA <<<"${FLOWNAV_ARGS-}"
 export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp/xdg-$(id -u)}
 mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
 
@@ -47,8 +49,9 @@ if [ ! -d "$FRAMES" ]; then
         { echo "cannot render the frame folder $FRAMES" >&2; exit 1; }
 fi
 
-one_run() { # one_run LABEL BINARY BACKEND
+one_run() { # one_run LABEL BINARY BACKEND [GLOBAL OPTIONS...]
     local label=$1 bin=$2 backend=$3 dir pty sb
+    shift 3
     dir=$(mktemp -d)
     pin "$BASE_CPU" "$bin" sim-base >"$dir/sb.out" 2>"$dir/sb.err" &
     sb=$!
@@ -62,7 +65,7 @@ one_run() { # one_run LABEL BINARY BACKEND
         kill "$sb" 2>/dev/null
         return 1
     fi
-    pin "$CPUS" timeout 60 "$bin" --flow-backend "$backend" run --camera "frames:$FRAMES" --base "fnp:$pty" \
+    pin "$CPUS" timeout 60 "$bin" "$@" --flow-backend "$backend" run --camera "frames:$FRAMES" --base "fnp:$pty" \
         --no-log >"$dir/run.out" 2>"$dir/run.err"
     kill "$sb" 2>/dev/null
     wait "$sb" 2>/dev/null
@@ -89,7 +92,7 @@ EOF
 for backend in $BACKENDS; do
     for i in $(seq "$RUNS"); do
         if [ -n "$BASE" ]; then emit "$(one_run base "$BASE" "$backend")"; fi
-        emit "$(one_run new "$BIN" "$backend")"
+        emit "$(one_run new "$BIN" "$backend" "${EXTRA[@]}")"
     done
 done
 
