@@ -182,9 +182,9 @@ impl Aggregate {
 
 pub fn run(args: Args, common: &Common) -> anyhow::Result<()> {
     let mut config = common.config()?;
-    // The simulator's parallelism is whole runs (`--jobs`), one per core: a run's flow stays on
-    // its own thread unless the config asks otherwise.
-    if config.flow.cpu_threads == 0 {
+    // With several runs at a time (`--jobs`) the parallelism is whole runs, one per core: each
+    // run's flow stays on its own thread unless the config asks otherwise.
+    if config.flow.cpu_threads == 0 && args.jobs > 1 {
         config.flow.cpu_threads = 1;
     }
     let calib = common.calibration()?.scaled_to(args.size.0, args.size.1);
