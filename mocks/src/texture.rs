@@ -212,6 +212,25 @@ mod tests {
         assert!((t.sample_detailed(1.2, 3.4, 0.5) - t.sample(1.2, 3.4, 0.5)).abs() < 0.02);
     }
 
+    /// The generated tile and its mips, and samples at every footprint, pinned bit for bit (the
+    /// simulated missions depend on every grey level).
+    #[test]
+    fn texture_and_samples_are_pinned_bit_for_bit() {
+        let t = shared();
+        let fnv = |h: u64, b: u8| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+        let levels = t.levels.iter().flatten().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| fnv(h, b));
+        assert_eq!(levels, 3_950_121_686_610_735_151, "texture levels");
+        let mut h = 0xcbf2_9ce4_8422_2325u64;
+        for i in 0..4000 {
+            let (u, v) = (i as f32 * 0.0137 - 9.0, (i * 7 % 1000) as f32 * 0.0091 - 3.0);
+            let footprint = 0.0005 * 1.0021f32.powi(i);
+            for s in [t.sample(u, v, footprint), t.sample_detailed(u, v, footprint)] {
+                h = s.to_le_bytes().iter().fold(h, |h, &b| fnv(h, b));
+            }
+        }
+        assert_eq!(h, 2_912_503_261_308_889_843, "samples");
+    }
+
     #[test]
     fn fast_log2_is_close() {
         for x in [0.3f32, 1.0, 1.5, 7.0, 1000.0] {
