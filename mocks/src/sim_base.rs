@@ -30,7 +30,7 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{Notify, mpsc, watch};
 
 /// A simulated device behind a serial port: bytes in, bytes out, in simulated time.
 pub trait SimDevice: Send + 'static {
@@ -402,6 +402,8 @@ pub struct SimServer<D: SimDevice> {
     link: Option<PathBuf>,
     manual: bool,
     stats: Arc<Mutex<LinkFaultStats>>,
+    /// Woken each time the device has taken in bytes from the host ([`SimServer::received`]).
+    received: Arc<Notify>,
     task: Option<tokio::task::JoinHandle<()>>,
 }
 
@@ -418,8 +420,9 @@ impl<D: SimDevice> SimServer<D> {
         let stats = Arc::new(Mutex::new(LinkFaultStats::default()));
         let manual = opts.clock == SimClock::Manual;
         let link = opts.link.clone();
-        let task = tokio::spawn(serve(pty, device.clone(), opts, ctl_rx, path_tx, stats.clone()));
-        Ok(Self { device, ctl, path, link, manual, stats, task: Some(task) })
+        let received = Arc::new(Notify::new());
+        let task = tokio::spawn(serve(pty, device.clone(), opts, ctl_rx, path_tx, stats.clone(), received.clone()));
+        Ok(Self { device, ctl, path, link, manual, stats, received, task: Some(task) })
     }
 
     /// The current pty slave path (`/dev/pts/N`; may change after a disconnect).
@@ -446,6 +449,13 @@ impl<D: SimDevice> SimServer<D> {
     /// Runs `f` on the device (e.g. counters, pose, the collision hook).
     pub fn with_device<R>(&self, f: impl FnOnce(&mut D) -> R) -> R {
         f(&mut lock(&self.device))
+    }
+
+    /// Returns once the device has taken in bytes from the host since the last call returned
+    /// (at once if it has already): a caller waiting for a command to arrive checks the device
+    /// after each wake-up instead of polling on a timer.
+    pub async fn received(&self) {
+        self.received.notified().await;
     }
 
     /// The true pose.
@@ -527,6 +537,7 @@ async fn serve<D: SimDevice>(
     mut ctl: mpsc::UnboundedReceiver<Control>,
     path_tx: watch::Sender<(u64, PathBuf)>,
     stats: Arc<Mutex<LinkFaultStats>>,
+    received: Arc<Notify>,
 ) {
     let mut tx_faults = FaultInjector::new(opts.faults.clone());
     let mut rx_faults = FaultInjector::new(FaultConfig { seed: opts.faults.seed ^ 0x5EED, ..opts.faults.clone() });
@@ -549,6 +560,7 @@ async fn serve<D: SimDevice>(
                     let (bytes, _) = if rx_faults.is_clean() { (buf[..n].to_vec(), None) } else { rx_faults.apply(&buf[..n]) };
                     note_byte_faults(&device, before, rx_faults.stats());
                     lock(&device).receive(&bytes, &mut out);
+                    received.notify_one();
                 }
                 _ => tokio::time::sleep(Duration::from_millis(10)).await,
             },

@@ -25,10 +25,16 @@ pub fn shared() -> &'static Texture {
     TEX.get_or_init(|| Texture::generate(0x0FF1_5EED))
 }
 
+/// Mip levels of the tile: `SIZE`, `SIZE / 2`, …, 1 texels square.
+const LEVELS: usize = SIZE.trailing_zeros() as usize + 1;
+
 /// A tileable grey texture and its mip pyramid, values 0..=255.
 pub struct Texture {
-    /// `levels[l]` is `(SIZE >> l)²` texels, row-major.
-    levels: Vec<Vec<u8>>,
+    /// Every level in one buffer: level `l` is `(SIZE >> l)²` texels, row-major, from `offsets[l]`.
+    texels: Vec<u8>,
+    offsets: [usize; LEVELS],
+    /// Texels per metre of each level, `1 / (TEXEL_M · 2^l)`, computed once rather than per sample.
+    scales: [f32; LEVELS],
 }
 
 impl Texture {
@@ -47,21 +53,22 @@ impl Texture {
                 })
                 .collect();
             let inv = 1.0 / wavelength as f32;
-            for y in 0..SIZE {
-                let fy = (y as f32 + 0.5) * inv - 0.5;
-                let y0 = fy.floor();
-                let ty = smooth(fy - y0);
-                let iy0 = (y0 as isize).rem_euclid(cells as isize) as usize;
-                let iy1 = (iy0 + 1) % cells;
-                for x in 0..SIZE {
+            // The lattice cell and weight of a coordinate are the same for rows and columns:
+            // computed once per octave instead of once per texel.
+            let taps: Vec<(usize, usize, f32)> = (0..SIZE)
+                .map(|x| {
                     let fx = (x as f32 + 0.5) * inv - 0.5;
                     let x0 = fx.floor();
-                    let tx = smooth(fx - x0);
-                    let ix0 = (x0 as isize).rem_euclid(cells as isize) as usize;
-                    let ix1 = (ix0 + 1) % cells;
-                    let a = lattice[iy0 * cells + ix0] + (lattice[iy0 * cells + ix1] - lattice[iy0 * cells + ix0]) * tx;
-                    let b = lattice[iy1 * cells + ix0] + (lattice[iy1 * cells + ix1] - lattice[iy1 * cells + ix0]) * tx;
-                    acc[y * SIZE + x] += a + (b - a) * ty;
+                    let i0 = (x0 as isize).rem_euclid(cells as isize) as usize;
+                    (i0, (i0 + 1) % cells, smooth(fx - x0))
+                })
+                .collect();
+            for (row, &(iy0, iy1, ty)) in acc.chunks_exact_mut(SIZE).zip(&taps) {
+                let (l0, l1) = (&lattice[iy0 * cells..][..cells], &lattice[iy1 * cells..][..cells]);
+                for (out, &(ix0, ix1, tx)) in row.iter_mut().zip(&taps) {
+                    let a = l0[ix0] + (l0[ix1] - l0[ix0]) * tx;
+                    let b = l1[ix0] + (l1[ix1] - l1[ix0]) * tx;
+                    *out += a + (b - a) * ty;
                 }
             }
             wavelength *= 2;
@@ -90,7 +97,21 @@ impl Texture {
             levels.push(next);
             size = half;
         }
-        Self { levels }
+        let mut offsets = [0; LEVELS];
+        let mut scales = [0.0; LEVELS];
+        let mut texels = Vec::with_capacity(levels.iter().map(Vec::len).sum());
+        for (l, level) in levels.iter().enumerate() {
+            offsets[l] = texels.len();
+            scales[l] = 1.0 / (TEXEL_M * (1 << l) as f32);
+            texels.extend_from_slice(level);
+        }
+        Self { texels, offsets, scales }
+    }
+
+    /// Mip level `l`: `(SIZE >> l)²` texels, row-major.
+    fn level(&self, l: usize) -> &[u8] {
+        let size = SIZE >> l;
+        &self.texels[self.offsets[l]..][..size * size]
     }
 
     /// The texture at surface point (u, v) in metres, for a pixel footprint of `footprint_m`
@@ -99,9 +120,9 @@ impl Texture {
     #[inline]
     pub fn sample(&self, u: f32, v: f32, footprint_m: f32) -> f32 {
         let lod = fast_log2(footprint_m / TEXEL_M).max(0.0);
-        let max = (self.levels.len() - 1) as f32;
+        let max = (LEVELS - 1) as f32;
         if lod >= max {
-            return self.levels[self.levels.len() - 1][0] as f32 / 255.0;
+            return self.texels[self.offsets[LEVELS - 1]] as f32 / 255.0;
         }
         let l0 = lod as usize;
         let f = lod - l0 as f32;
@@ -133,12 +154,12 @@ impl Texture {
     fn bilinear(&self, level: usize, u: f32, v: f32) -> f32 {
         let size = SIZE >> level;
         let mask = size as i32 - 1;
-        let scale = 1.0 / (TEXEL_M * (1 << level) as f32);
+        let scale = self.scales[level];
         let x = u * scale - 0.5;
         let y = v * scale - 0.5;
         let (ix, fx) = floor_frac(x);
         let (iy, fy) = floor_frac(y);
-        let tex = &self.levels[level];
+        let tex = self.level(level);
         let x0 = (ix & mask) as usize;
         let x1 = ((ix + 1) & mask) as usize;
         let y0 = (iy & mask) as usize * size;
@@ -185,7 +206,7 @@ mod tests {
     #[test]
     fn texture_has_contrast_and_mips_average() {
         let t = shared();
-        let base = &t.levels[0];
+        let base = t.level(0);
         let mean = base.iter().map(|&v| v as f64).sum::<f64>() / base.len() as f64;
         assert!((mean - 128.0).abs() < 2.0, "{mean}");
         // Fine detail: neighbouring texels differ.
@@ -210,6 +231,25 @@ mod tests {
         assert!(print > 2.0 * plain, "plain {plain}, with print {print}");
         // half a metre per pixel: the print band is averaged away
         assert!((t.sample_detailed(1.2, 3.4, 0.5) - t.sample(1.2, 3.4, 0.5)).abs() < 0.02);
+    }
+
+    /// The generated tile and its mips, and samples at every footprint, pinned bit for bit (the
+    /// simulated missions depend on every grey level).
+    #[test]
+    fn texture_and_samples_are_pinned_bit_for_bit() {
+        let t = shared();
+        let fnv = |h: u64, b: u8| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+        let levels = (0..LEVELS).flat_map(|l| t.level(l)).fold(0xcbf2_9ce4_8422_2325u64, |h, &b| fnv(h, b));
+        assert_eq!(levels, 3_950_121_686_610_735_151, "texture levels");
+        let mut h = 0xcbf2_9ce4_8422_2325u64;
+        for i in 0..4000 {
+            let (u, v) = (i as f32 * 0.0137 - 9.0, (i * 7 % 1000) as f32 * 0.0091 - 3.0);
+            let footprint = 0.0005 * 1.0021f32.powi(i);
+            for s in [t.sample(u, v, footprint), t.sample_detailed(u, v, footprint)] {
+                h = s.to_le_bytes().iter().fold(h, |h, &b| fnv(h, b));
+            }
+        }
+        assert_eq!(h, 2_912_503_261_308_889_843, "samples");
     }
 
     #[test]

@@ -588,22 +588,40 @@ impl World {
     /// Distance from plan point (x, y) to the nearest thing a robot can bump into (wall pieces
     /// reaching below 0.5 m, boxes, cylinders); 0 inside an obstacle. For collision checks.
     pub fn clearance(&self, x: f64, y: f64) -> Clearance {
+        // The simulator calls this at every drive substep and sphere-traces with it: the nearest
+        // thing is found on distances alone (boxes and cylinders without copying them), and only
+        // the winner is named.
+        enum Nearest {
+            Nothing,
+            Wall(usize),
+            Obstacle(usize),
+        }
         let p = [x, y];
-        let mut best = Clearance { distance_m: f64::INFINITY, object: "nothing".into(), obstacle: None };
+        let (mut best, mut nearest) = (f64::INFINITY, Nearest::Nothing);
         for f in self.faces().iter().filter(|f| f.z0 < 0.5) {
             let d = point_segment_distance(p, f.a, f.b);
-            if d < best.distance_m {
-                let object = format!("wall {}", wall_label(f.wall, &self.walls[f.wall]));
-                best = Clearance { distance_m: d, object, obstacle: None };
+            if d < best {
+                (best, nearest) = (d, Nearest::Wall(f.wall));
             }
         }
-        for (k, s) in self.obstacle_shapes().iter().enumerate() {
-            let d = s.distance_to_point(p);
-            if d < best.distance_m {
-                best = Clearance { distance_m: d, object: s.label(), obstacle: Some(k) };
+        let boxes = self.boxes.iter().map(|b| box_distance(p, &box_corners(b)));
+        let cylinders = self.cylinders.iter().map(|c| cylinder_distance(p, c));
+        for (k, d) in boxes.chain(cylinders).enumerate() {
+            if d < best {
+                (best, nearest) = (d, Nearest::Obstacle(k));
             }
         }
-        best
+        match nearest {
+            Nearest::Nothing => Clearance { distance_m: best, object: "nothing".into(), obstacle: None },
+            Nearest::Wall(w) => Clearance {
+                distance_m: best,
+                object: format!("wall {}", wall_label(w, &self.walls[w])),
+                obstacle: None,
+            },
+            Nearest::Obstacle(k) => {
+                Clearance { distance_m: best, object: self.obstacle_shapes()[k].label(), obstacle: Some(k) }
+            }
+        }
     }
 
     /// For each point on the floor, the distance to each obstacle's footprint (boxes, then cylinders, in
@@ -755,6 +773,20 @@ fn wall_label(i: usize, w: &Wall) -> String {
     if w.name.is_empty() { format!("walls[{i}]") } else { format!("walls[{i}] ({})", w.name) }
 }
 
+/// Distance from plan point `p` to a box's footprint (its corners in order); 0 inside.
+fn box_distance(p: [f64; 2], corners: &[[f64; 2]; 4]) -> f64 {
+    if point_in_convex(p, corners) {
+        0.0
+    } else {
+        (0..4).map(|k| point_segment_distance(p, corners[k], corners[(k + 1) % 4])).fold(f64::INFINITY, f64::min)
+    }
+}
+
+/// Distance from plan point `p` to a cylinder's footprint; 0 inside.
+fn cylinder_distance(p: [f64; 2], c: &Cylinder) -> f64 {
+    (dist(p, c.center) - c.radius).max(0.0)
+}
+
 /// Corners of a box's footprint, counter-clockwise.
 pub(crate) fn box_corners(b: &BoxObstacle) -> [[f64; 2]; 4] {
     let (s, c) = b.yaw.sin_cos();
@@ -795,16 +827,8 @@ impl Shape {
     /// Distance from a point to the footprint; 0 inside.
     fn distance_to_point(&self, p: [f64; 2]) -> f64 {
         match self {
-            Shape::Box { corners, .. } => {
-                if point_in_convex(p, corners) {
-                    0.0
-                } else {
-                    (0..4)
-                        .map(|k| point_segment_distance(p, corners[k], corners[(k + 1) % 4]))
-                        .fold(f64::INFINITY, f64::min)
-                }
-            }
-            Shape::Cyl { c, .. } => (dist(p, c.center) - c.radius).max(0.0),
+            Shape::Box { corners, .. } => box_distance(p, corners),
+            Shape::Cyl { c, .. } => cylinder_distance(p, c),
         }
     }
 

@@ -648,10 +648,13 @@ pub async fn run_with_camera<C: Camera>(
             if n > before && held == want {
                 break;
             }
-            if Instant::now() >= deadline {
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
                 return Err(stalled(t_s, "the set-point reaching the simulated base", setup));
             }
-            tokio::time::sleep(Duration::from_micros(50)).await;
+            // Woken when the firmware has read bytes from the pty (tokio's timers tick in whole
+            // milliseconds, so polling on a timer cost a millisecond of wall time per tick).
+            let _ = tokio::time::timeout(left, server.received()).await;
         }
 
         let report_every = setup.fps.round().max(1.0) as u64;
