@@ -236,7 +236,11 @@ async fn await_hello(pty: &mut mocks::pty::Pty, answer: bool) {
     let mut dec = Decoder::new(Direction::HostToBase);
     let mut buf = [0u8; 256];
     loop {
-        let n = AsyncReadExt::read(pty, &mut buf).await.unwrap();
+        // The master's reads fail until the driver has opened the port.
+        let Ok(n) = AsyncReadExt::read(pty, &mut buf).await else {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+            continue;
+        };
         if dec.feed_collect(&buf[..n]).iter().any(|f| matches!(f.packet, Packet::Hello { .. })) {
             break;
         }
