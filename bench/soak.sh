@@ -6,8 +6,12 @@
 #     (a fault is settled when the base is commanded to zero or receives an intact command;
 #     docs/serial.md, "Soak");
 #   - the run's RSS grows by less than 5 % from the end of the warm-up to the end;
-#   - every fault is counted: the host saw every disconnect, and the frames the faults made
-#     undeliverable show up as lost packets in the decoder of the side that should have got them.
+#   - every fault is counted: each injected disconnect is a loss the host's OS reported (the
+#     driver's `disconnects_os` plus `hangups_reconnecting` equal the disconnects injected, exactly),
+#     the losses the driver's silence timeout declared are reported on their own, and the frames
+#     the faults made undeliverable show up as lost packets in the decoder of the side that should
+#     have got them (docs/serial.md, "Soak").
+# The 1-minute load average is sampled with the RSS and reported (the machine may be shared).
 #
 # Usage:  bench/soak.sh                   (one hour)
 #         DURATION=300 bench/soak.sh      (a quick one)
@@ -62,6 +66,7 @@ echo "soak: sim-base on $(head -n1 "$OUT/sim-base.out") (link $link), faults $FA
 run_pid=$!
 start=$(date +%s)
 : >"$OUT/rss.tsv"
+: >"$OUT/load.tsv"
 next=0
 # Polled often, so the base stops right after the run: faults injected after the host has gone
 # cannot be counted by it.
@@ -70,6 +75,7 @@ while kill -0 "$run_pid" 2>/dev/null; do
   if [ "$now" -ge "$next" ]; then
     rss=$(awk '/^VmRSS:/ {print $2}' "/proc/$run_pid/status" 2>/dev/null || true)
     [ -n "$rss" ] && printf '%s\t%s\n' "$now" "$rss" >>"$OUT/rss.tsv"
+    printf '%s\t%s\n' "$now" "$(cut -d' ' -f1 /proc/loadavg)" >>"$OUT/load.tsv"
     next=$(( now + SAMPLE ))
   fi
   sleep 0.2
@@ -97,14 +103,23 @@ gap_p99 = max(gaps[k]["p99_ms"] for k in kinds)
 # intact one on that link: allow one per connection.
 slack = link["reconnects"] + 1
 to_host_expected = f["to_host"]["frames_hit"] - f["to_host"]["frames_hit_unseen"]
+# The simulated base injects a disconnect only while the host has the port open, so each one is a
+# hang-up the host's OS reports: on a link that was up (disconnects_os) or during a reconnect's
+# handshake (hangups_reconnecting). Losses the host's silence timeout declared are link silences
+# it handled (a starved process, a run of dropped bytes), reported on their own.
+host_os = link["disconnects_os"] + link["hangups_reconnecting"]
+load = [float(l.split()[1]) for l in open(f"{out}/load.tsv") if l.strip()]
 counted = {
-    "disconnects": {"injected": f["disconnects"], "host": link["disconnects"]},
+    "disconnects": {"injected": f["disconnects"], "host_os": host_os, "host_os_link_up": link["disconnects_os"],
+                    "host_os_reconnecting": link["hangups_reconnecting"],
+                    "host_silence": link["disconnects_silence"], "host_link_losses": link["disconnects"]},
     "frames_to_host": {"hit": to_host_expected, "host_lost": link["lost_rx"], "host_dropped": link["dropped_rx"]},
     "frames_to_base": {"hit": f["to_base"]["frames_hit"], "base_lost": base["base"]["frames_lost"],
                        "base_dropped": base["base"]["frames_dropped"]},
 }
 all_counted = (
-    f["disconnects"] == link["disconnects"]
+    f["disconnects"] == host_os
+    and link["disconnects"] == link["disconnects_os"] + link["disconnects_silence"]
     and abs(link["lost_rx"] - to_host_expected) <= slack
     and abs(base["base"]["frames_lost"] - f["to_base"]["frames_hit"]) <= slack
 )
@@ -124,6 +139,8 @@ summary = {
     "rss_kb": {"start": rss_start, "end": rss_end, "samples": len(rss)},
     "rss_growth_pct": round(growth, 2),
     "frames_processed": run["frames_processed"],
+    "load_1min": {"mean": round(sum(load) / len(load), 2) if load else None, "max": max(load, default=None),
+                  "samples": len(load)},
     "run_exit": int(run_rc),
     "ok": {"gap": gap_max <= 200.0 and gaps["pending"] <= 1, "rss": growth < 5.0, "counted": all_counted,
            "run": int(run_rc) == 0 and run["ended"] == "shutdown"},

@@ -47,6 +47,16 @@ pub struct LinkStats {
     /// Times the link was declared down, and times it came back.
     pub disconnects: u64,
     pub reconnects: u64,
+    /// Of `disconnects`, those the operating system reported: end of file, a read or write error,
+    /// a hang-up (the port went away, as a USB adapter that is unplugged).
+    pub disconnects_os: u64,
+    /// Of `disconnects`, those the driver's silence timeout declared while the port was still
+    /// there: nothing received (or a write blocked) for the silence timeout.
+    pub disconnects_silence: u64,
+    /// Times the port hung up while the driver was reconnecting (during the handshake on a
+    /// reopened port): losses the OS reported while the link was already down, so not in
+    /// `disconnects`.
+    pub hangups_reconnecting: u64,
     /// Times the driver's own command watchdog zeroed a stale non-zero command.
     pub command_timeouts: u64,
     /// Events discarded because nobody read them (the event queue was full).

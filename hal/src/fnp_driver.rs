@@ -287,7 +287,7 @@ async fn handshake<S: AsyncRead + AsyncWrite + Unpin + Send>(
     let lost = |reason: String| SerialBaseError::Disconnected { port: port.to_string(), reason };
     loop {
         let hello = fnp::encode(shared.take_seq(), &Packet::Hello { watchdog_ms: cfg.watchdog_ms });
-        send_frame(s, shared, &hello, cfg.handshake_timeout).await.map_err(lost)?;
+        send_frame(s, shared, &hello, cfg.handshake_timeout).await.map_err(|(_, reason)| lost(reason))?;
         let until = (Instant::now() + resend).min(deadline);
         loop {
             let n = match tokio::time::timeout_at(until, s.read(&mut buf)).await {
@@ -512,6 +512,7 @@ mod tests {
         let stats = base.link_stats();
         assert!(saw_disconnect);
         assert_eq!((stats.disconnects, stats.reconnects, stats.connected), (1, 1, true));
+        assert_eq!((stats.disconnects_silence, stats.disconnects_os), (1, 0), "a pipe that stays open went silent");
         // After the reconnect the driver sends STOP until commanded again.
         let hello_at = log.lock().unwrap().iter().filter(|(_, p)| matches!(p, Packet::Hello { .. })).nth(1).unwrap().0;
         tokio::time::sleep(Duration::from_millis(200)).await;

@@ -84,6 +84,13 @@ pub trait Connector: Send + 'static {
     fn emergency_writer(&self, _stream: &Self::Stream) -> Option<std::fs::File> {
         None
     }
+
+    /// Whether the operating system reports the stream hung up (the device went away). Asked
+    /// when the driver's own timer gives up on a link, so that a loss the OS reported is counted
+    /// as such even when the timer fired first (a host too loaded to read the hang-up in time).
+    fn hung_up(&self, _stream: &Self::Stream) -> bool {
+        false
+    }
 }
 
 /// A serial port (or pseudo-terminal) by path, via tokio-serial, 8N1.
@@ -137,6 +144,15 @@ impl Connector for SerialConnector {
         // descriptor and stays valid after `stream` is closed.
         let fd = unsafe { BorrowedFd::borrow_raw(stream.as_raw_fd()) };
         fd.try_clone_to_owned().ok().map(std::fs::File::from)
+    }
+
+    fn hung_up(&self, stream: &Self::Stream) -> bool {
+        use std::os::fd::AsRawFd;
+        let mut fd = libc::pollfd { fd: stream.as_raw_fd(), events: libc::POLLIN, revents: 0 };
+        // SAFETY: one valid pollfd for the duration of the call; the descriptor belongs to
+        // `stream`, which is alive. A zero timeout only reads the current state.
+        let n = unsafe { libc::poll(&mut fd, 1, 0) };
+        n > 0 && fd.revents & (libc::POLLHUP | libc::POLLERR | libc::POLLNVAL) != 0
     }
 }
 
@@ -252,6 +268,9 @@ pub(crate) struct Shared {
     pub dropped_rx: AtomicU64,
     pub lost_rx: AtomicU64,
     pub disconnects: AtomicU64,
+    pub disconnects_os: AtomicU64,
+    pub disconnects_silence: AtomicU64,
+    pub hangups_reconnecting: AtomicU64,
     pub reconnects: AtomicU64,
     pub command_timeouts: AtomicU64,
     pub events_dropped: AtomicU64,
@@ -283,6 +302,9 @@ impl Shared {
             dropped_rx: g(&self.dropped_rx),
             lost_rx: g(&self.lost_rx),
             disconnects: g(&self.disconnects),
+            disconnects_os: g(&self.disconnects_os),
+            disconnects_silence: g(&self.disconnects_silence),
+            hangups_reconnecting: g(&self.hangups_reconnecting),
             reconnects: g(&self.reconnects),
             command_timeouts: g(&self.command_timeouts),
             events_dropped: g(&self.events_dropped),
@@ -449,13 +471,22 @@ impl<P: Protocol> Drop for SerialTask<P> {
     }
 }
 
-/// Writes one frame within `limit`, counting it; the error is the reason the link is down.
+/// Who declared a link down.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum LossCause {
+    /// The operating system: end of file, a read or write error, a hang-up.
+    Os,
+    /// The driver's own timer: nothing received, or a write blocked, for the silence timeout.
+    Silence,
+}
+
+/// Writes one frame within `limit`, counting it; the error is who declared the link down and why.
 pub(crate) async fn send_frame<S: AsyncWrite + Unpin>(
     s: &mut S,
     shared: &Shared,
     frame: &[u8],
     limit: Duration,
-) -> Result<(), String> {
+) -> Result<(), (LossCause, String)> {
     match tokio::time::timeout(limit, async {
         s.write_all(frame).await?;
         s.flush().await
@@ -466,8 +497,8 @@ pub(crate) async fn send_frame<S: AsyncWrite + Unpin>(
             shared.frames_tx.fetch_add(1, Ordering::Relaxed);
             Ok(())
         }
-        Ok(Err(e)) => Err(format!("write failed: {e}")),
-        Err(_) => Err(format!("write blocked for {} ms", limit.as_millis())),
+        Ok(Err(e)) => Err((LossCause::Os, format!("write failed: {e}"))),
+        Err(_) => Err((LossCause::Silence, format!("write blocked for {} ms", limit.as_millis()))),
     }
 }
 
@@ -479,7 +510,7 @@ fn push(events_tx: &mpsc::Sender<EventMsg>, shared: &Shared, ev: EventMsg) {
 
 enum SessionEnd {
     Shutdown,
-    Lost(String),
+    Lost(LossCause, String),
 }
 
 /// The background task's state.
@@ -503,9 +534,22 @@ impl<P: Protocol, C: Connector> Link<P, C> {
         loop {
             match self.session(&mut stream).await {
                 SessionEnd::Shutdown => return,
-                SessionEnd::Lost(reason) => {
+                SessionEnd::Lost(cause, mut reason) => {
                     self.shared.connected.store(false, Ordering::Relaxed);
                     self.shared.disconnects.fetch_add(1, Ordering::Relaxed);
+                    // The timer may fire before the hang-up is read (a starved task wakes to both at
+                    // once): the OS has the last word on whether the port went away.
+                    let cause = if cause == LossCause::Silence && self.connector.hung_up(&stream) {
+                        reason.push_str("; the port has hung up");
+                        LossCause::Os
+                    } else {
+                        cause
+                    };
+                    match cause {
+                        LossCause::Os => &self.shared.disconnects_os,
+                        LossCause::Silence => &self.shared.disconnects_silence,
+                    }
+                    .fetch_add(1, Ordering::Relaxed);
                     *self.shared.emergency.lock().unwrap_or_else(|e| e.into_inner()) = None;
                     let err = SerialBaseError::Disconnected { port: self.port.clone(), reason };
                     tracing::warn!("{err}");
@@ -560,14 +604,14 @@ impl<P: Protocol, C: Connector> Link<P, C> {
                     }
                     self.fresh_required = false;
                     let f = self.current_frame();
-                    if let Err(reason) = send_frame(s, &self.shared, &f, silence).await {
-                        return SessionEnd::Lost(reason);
+                    if let Err((cause, reason)) = send_frame(s, &self.shared, &f, silence).await {
+                        return SessionEnd::Lost(cause, reason);
                     }
                     tick.reset();
                 }
                 n = s.read(&mut buf) => match n {
-                    Ok(0) => return SessionEnd::Lost("the port was closed".into()),
-                    Err(e) => return SessionEnd::Lost(format!("read failed: {e}")),
+                    Ok(0) => return SessionEnd::Lost(LossCause::Os, "the port was closed".into()),
+                    Err(e) => return SessionEnd::Lost(LossCause::Os, format!("read failed: {e}")),
                     Ok(n) => {
                         last_rx = Instant::now();
                         let (events_tx, shared) = (&self.events_tx, &self.shared);
@@ -579,12 +623,12 @@ impl<P: Protocol, C: Connector> Link<P, C> {
                 },
                 _ = tick.tick() => {
                     let f = self.current_frame();
-                    if let Err(reason) = send_frame(s, &self.shared, &f, silence).await {
-                        return SessionEnd::Lost(reason);
+                    if let Err((cause, reason)) = send_frame(s, &self.shared, &f, silence).await {
+                        return SessionEnd::Lost(cause, reason);
                     }
                 }
                 _ = tokio::time::sleep_until(last_rx + silence) => {
-                    return SessionEnd::Lost(format!("nothing received for {} ms", silence.as_millis()));
+                    return SessionEnd::Lost(LossCause::Silence, format!("nothing received for {} ms", silence.as_millis()));
                 }
             }
         }
@@ -614,7 +658,14 @@ impl<P: Protocol, C: Connector> Link<P, C> {
                         self.connected(&hello, true);
                         return Some(s);
                     }
-                    Err(e) => tracing::debug!("reconnect: {e}"),
+                    Err(e) => {
+                        // The port went away again before the link was up: a loss the OS
+                        // reported, though not of a link that was up.
+                        if self.connector.hung_up(&s) {
+                            self.shared.hangups_reconnecting.fetch_add(1, Ordering::Relaxed);
+                        }
+                        tracing::debug!("reconnect: {e}");
+                    }
                 },
                 Err(e) => tracing::debug!("reconnect: {e}"),
             }

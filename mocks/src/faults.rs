@@ -56,7 +56,8 @@ pub struct FaultConfig {
     /// Probability that a chunk is held back, for up to `delay_max`.
     pub delay: f64,
     pub delay_max: Duration,
-    /// Expected disconnects per second of link time; each lasts `disconnect_for`.
+    /// Expected disconnects per second of link time (a served pty draws them only while a
+    /// driver has the port open); each lasts `disconnect_for`.
     pub disconnect_per_s: f64,
     pub disconnect_for: Duration,
     pub seed: u64,

@@ -1,9 +1,10 @@
 //! Pseudo-terminals for the simulated bases: a raw-mode pty whose slave path (`/dev/pts/N`) a
 //! driver opens like a serial port, while the simulator reads and writes the master.
 //!
-//! The simulator keeps a slave descriptor open for the pty's whole life, so the master never
-//! sees a hang-up when the driver closes and reopens the port. Closing a [`Pty`] (dropping it)
-//! hangs up the slave side: that is how a disconnect is simulated. An optional stable symlink
+//! The simulator holds no slave descriptor, so the master tells whether a driver has the port
+//! open ([`Pty::peer_open`]): while none has, the master reports a hang-up and its reads fail
+//! (the raw mode stays set for the next open). Closing a [`Pty`] (dropping it) hangs up the
+//! slave side: that is how a disconnect is simulated. An optional stable symlink
 //! ([`Pty::link_at`]) lets a driver reopen "the same port" after the simulator made a new pty,
 //! like a udev symlink for a USB adapter that was unplugged and plugged back in.
 
@@ -11,7 +12,7 @@ use nix::fcntl::{FcntlArg, OFlag, fcntl};
 use nix::sys::termios::{SetArg, cfmakeraw, tcgetattr, tcsetattr};
 use std::fs::File;
 use std::io::{self, Read, Write};
-use std::os::fd::OwnedFd;
+use std::os::fd::AsFd;
 use std::path::{Path, PathBuf};
 use std::pin::Pin;
 use std::sync::Arc;
@@ -23,7 +24,6 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 /// A pty opened in raw mode: the master as an async byte stream, the slave's path for drivers.
 pub struct Pty {
     master: AsyncFd<File>,
-    _slave: OwnedFd,
     path: PathBuf,
     /// Bytes written to the master that the kernel refused because nobody is reading the slave.
     unread_dropped: Arc<AtomicU64>,
@@ -43,7 +43,19 @@ impl Pty {
         // SAFETY: the AsyncFd owns the file, so the descriptor stays open (and is not reused)
         // until the AsyncFd is dropped, which deregisters it first.
         let master = unsafe { AsyncFd::register(master) }.map_err(|e| e.into_parts().1)?;
-        Ok(Self { master, _slave: pair.slave, path, unread_dropped: Arc::new(AtomicU64::new(0)) })
+        // `pair.slave` closes here: the driver's open is the only one.
+        Ok(Self { master, path, unread_dropped: Arc::new(AtomicU64::new(0)) })
+    }
+
+    /// Whether some process has the slave (the port) open now: the master reports a hang-up
+    /// while none has.
+    pub fn peer_open(&self) -> bool {
+        use nix::poll::{PollFd, PollFlags, PollTimeout, poll};
+        let mut fds = [PollFd::new(self.master.get_ref().as_fd(), PollFlags::POLLIN)];
+        match poll(&mut fds, PollTimeout::ZERO) {
+            Ok(_) => !fds[0].revents().is_some_and(|r| r.contains(PollFlags::POLLHUP)),
+            Err(_) => false,
+        }
     }
 
     /// The slave's path (`/dev/pts/N`), to be opened by a driver.
@@ -123,5 +135,17 @@ mod tests {
         let mut got = vec![0u8; 256];
         pty.read_exact(&mut got).await.unwrap();
         assert_eq!(got, all);
+    }
+
+    #[tokio::test]
+    async fn tells_whether_a_driver_has_the_port_open() {
+        let pty = Pty::open().unwrap();
+        assert!(!pty.peer_open(), "nobody has opened the slave yet");
+        let port = std::fs::OpenOptions::new().read(true).write(true).open(pty.path()).unwrap();
+        assert!(pty.peer_open());
+        drop(port);
+        assert!(!pty.peer_open(), "the driver closed the port");
+        let _again = std::fs::OpenOptions::new().read(true).write(true).open(pty.path()).unwrap();
+        assert!(pty.peer_open(), "reopened");
     }
 }

@@ -571,7 +571,9 @@ async fn serve<D: SimDevice>(
                 if let SimClock::RealTime { .. } = opts.clock {
                     lock(&device).advance(dt.as_secs_f64(), &mut out);
                 }
-                if tx_faults.disconnect_now(dt) {
+                // A drawn disconnect only hits a link a driver holds: one that hits a closed port
+                // (a driver backing off between reconnects) is a fault no host can see or count.
+                if pty.peer_open() && tx_faults.disconnect_now(dt) {
                     down_for = Some(opts.faults.disconnect_for);
                 }
             }

@@ -197,9 +197,90 @@ async fn driver_reconnects_after_the_port_vanishes() {
     .unwrap();
     let stats = base.link_stats();
     assert_eq!((stats.disconnects, stats.reconnects), (1, 1));
+    // Closing the pty hangs the port up: a loss the OS reported, whatever the silence timer did.
+    assert_eq!((stats.disconnects_os, stats.disconnects_silence, stats.hangups_reconnecting), (1, 0, 0), "{stats:?}");
     assert_eq!(server.with_device(|b| b.counters().hellos), 2, "the handshake was repeated on the new pty");
     base.set_velocity(BodyVelocity::new(0.1, 0.0)).unwrap();
     assert!(matches!(base.next_event(GUARD).await, Ok(Some(_))));
+}
+
+#[tokio::test]
+async fn a_silent_base_is_a_loss_declared_by_the_silence_timeout() {
+    // A manual clock: the base answers HELLO but sends nothing on its own, and its pty stays.
+    let server = sim(SimClock::Manual);
+    let mut cfg = FnpConfig::new(server.pty_path().to_string_lossy());
+    cfg.silence_timeout = Duration::from_millis(100);
+    let mut base = timeout(GUARD, FnpBase::connect(cfg)).await.unwrap().unwrap();
+    let err = timeout(GUARD, async {
+        loop {
+            if let Err(e) = base.next_event(Duration::from_secs(1)).await {
+                return e;
+            }
+        }
+    })
+    .await
+    .unwrap();
+    assert!(err.to_string().contains("nothing received for 100 ms"), "{err}");
+    let stats = base.link_stats();
+    // The port is still there, so every loss (the driver may have reconnected and gone silent
+    // again meanwhile) is the timer's.
+    assert!(stats.disconnects >= 1, "{stats:?}");
+    assert_eq!(
+        (stats.disconnects_silence, stats.disconnects_os, stats.hangups_reconnecting),
+        (stats.disconnects, 0, 0)
+    );
+}
+
+/// Plays the base on `pty`: reads until HELLO arrives, then answers INFO unless `answer` is false.
+async fn await_hello(pty: &mut mocks::pty::Pty, answer: bool) {
+    let mut dec = Decoder::new(Direction::HostToBase);
+    let mut buf = [0u8; 256];
+    loop {
+        // The master's reads fail until the driver has opened the port.
+        let Ok(n) = AsyncReadExt::read(pty, &mut buf).await else {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+            continue;
+        };
+        if dec.feed_collect(&buf[..n]).iter().any(|f| matches!(f.packet, Packet::Hello { .. })) {
+            break;
+        }
+    }
+    if answer {
+        let info = Packet::Info { version: 1, wheel_base_mm: 330, ticks_per_m: 10_000, name: fnp::ascii_name("pty") };
+        pty.write_all(&fnp::encode(0, &info)).await.unwrap();
+    }
+}
+
+#[tokio::test]
+async fn a_hang_up_during_a_reconnect_is_counted_apart() {
+    use mocks::pty::Pty;
+    let dir = tempfile::tempdir().unwrap();
+    let link = dir.path().join("ttyBASE");
+    let mut first = Pty::open().unwrap();
+    first.link_at(&link).unwrap();
+    let connect = tokio::spawn(FnpBase::connect(FnpConfig::new(link.to_string_lossy())));
+    timeout(GUARD, await_hello(&mut first, true)).await.unwrap();
+    let mut base = timeout(GUARD, connect).await.unwrap().unwrap().unwrap();
+    // The port goes away with the link up; the next one hangs up in the middle of the handshake;
+    // the third answers.
+    let mut second = Pty::open().unwrap();
+    second.link_at(&link).unwrap();
+    drop(first);
+    timeout(GUARD, await_hello(&mut second, false)).await.unwrap();
+    let mut third = Pty::open().unwrap();
+    third.link_at(&link).unwrap();
+    drop(second);
+    timeout(GUARD, await_hello(&mut third, true)).await.unwrap();
+    timeout(GUARD, async {
+        while !base.link_stats().connected {
+            let _ = base.next_event(Duration::from_millis(50)).await;
+        }
+    })
+    .await
+    .unwrap();
+    let stats = base.link_stats();
+    assert_eq!((stats.disconnects, stats.reconnects), (1, 1), "{stats:?}");
+    assert_eq!((stats.disconnects_os, stats.disconnects_silence, stats.hangups_reconnecting), (1, 0, 1), "{stats:?}");
 }
 
 #[tokio::test]
