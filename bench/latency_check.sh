@@ -53,7 +53,13 @@ one_run() { # one_run LABEL BINARY BACKEND [GLOBAL OPTIONS...]
     local label=$1 bin=$2 backend=$3 dir pty sb
     shift 3
     dir=$(mktemp -d)
-    pin "$BASE_CPU" "$bin" sim-base >"$dir/sb.out" 2>"$dir/sb.err" &
+    # started directly (not through `pin`, a function, whose background subshell `kill` would
+    # end while leaving the base running)
+    if [ -n "$BASE_CPU" ]; then
+        taskset -c "$BASE_CPU" "$bin" sim-base >"$dir/sb.out" 2>"$dir/sb.err" &
+    else
+        "$bin" sim-base >"$dir/sb.out" 2>"$dir/sb.err" &
+    fi
     sb=$!
     for _ in $(seq 100); do
         [ -s "$dir/sb.out" ] && break
