@@ -198,6 +198,7 @@ fn summary_json_starts_with_the_contract_fields() {
         first_contact: None,
         tpo_frames: [1, 2, 3, 4, 5],
         doors_matched: 0,
+        walls_ahead_matched: 0,
         landmarks_missed: 0,
         replans: 0,
         wall_fixes: 12,

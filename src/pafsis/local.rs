@@ -42,6 +42,16 @@ const DOOR_MAX_OFF_AXIS_RAD: f64 = 0.15;
 /// While the matched door stays in view, each frame moves the progress this fraction of the way
 /// to where the frame's door distance puts it (about ten frames' average).
 const DOOR_TRACK_GAIN: f64 = 0.1;
+/// The wall-ahead fix ([`Pafsis::wall_ahead`]) takes walls up to this far ahead: nearer, a
+/// frontal plane's distance from the flow is good to a few per cent.
+const WALL_AHEAD_MAX_RANGE_M: f64 = 3.0;
+/// ... and no nearer than this: a door up to 1 m wide then takes at most ±18° of the C310's
+/// ±27° view, and the wall beside it stays in the plane fit.
+const WALL_AHEAD_MIN_RANGE_M: f64 = 1.5;
+/// The first this many sightings of a leg place its end (their median) ...
+const WALL_AHEAD_FIRST_FRAMES: usize = 2;
+/// ... after which each frame moves the progress this fraction of the disagreement.
+const WALL_AHEAD_GAIN: f64 = 0.25;
 
 /// A straight leg that follows the current one within this angle continues it
 /// ([`Pafsis::stop_ahead_m`]), rad.
@@ -93,11 +103,16 @@ pub struct Leg {
     /// A metric line the leg follows (a point and the heading), when the map has positions;
     /// used only with a pose hint.
     pub line_point_m: Option<[f64; 2]>,
-    /// Width of the corridor around that line, m, when the map gives it (corridor legs).
-    pub lane_width_m: Option<f64>,
+    /// The corridor around that line, part by part along the leg (corridor legs; one part per
+    /// map edge merged into the leg): a corridor of varied widths keeps each part's width.
+    pub lane: Vec<LanePart>,
     /// A doorway leg's door where the map gives it: the opening's centre in the map frame
     /// (on the leg's line, [`Action::opening`]'s distance before its end) and its width, m.
     pub door_m: Option<([f64; 2], f64)>,
+    /// A corridor leg that ends facing a door: how far beyond the leg's end the door's wall
+    /// stands, m (the map's door place in front of a door, and the door's edge onward). The
+    /// wall seen ahead then says how far the leg has left to go ([`Pafsis`]'s wall-ahead fix).
+    pub wall_beyond_m: Option<f64>,
 }
 
 impl fmt::Display for Leg {
@@ -128,6 +143,36 @@ impl fmt::Display for Leg {
     }
 }
 
+/// One stretch of a corridor leg's lane: it ends `until_m` along the leg, with the width the map
+/// gives it (`None`: the map gives none).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct LanePart {
+    pub until_m: f64,
+    pub width_m: Option<f64>,
+}
+
+impl Leg {
+    /// The corridor's width around `along_m` along this leg, m: the narrowest part that lies
+    /// within `slack_m` of it (progress is an estimate, and a robot believed past a step into a
+    /// wider part may still be in the narrower one); `None` when any such part has no width.
+    pub fn lane_width_at(&self, along_m: f64, slack_m: f64) -> Option<f64> {
+        let (lo, hi) = (along_m - slack_m, along_m + slack_m);
+        let mut start = 0.0;
+        let mut width: Option<f64> = None;
+        for (i, part) in self.lane.iter().enumerate() {
+            let last = i + 1 == self.lane.len();
+            // the first part reaches back before the leg's start, the last beyond its end
+            let overlaps = (i == 0 || hi >= start) && (last || lo <= part.until_m);
+            if overlaps {
+                let w = part.width_m?;
+                width = Some(width.map_or(w, |a: f64| a.min(w)));
+            }
+            start = part.until_m;
+        }
+        width
+    }
+}
+
 /// Unrolls a plan into legs, starting with the robot facing `start_heading_rad` (map frame).
 /// A turn on the spot is inserted wherever the robot would start an edge facing another way
 /// than the edge's `heading_deg`; consecutive straight corridor edges merge into one leg whose
@@ -147,8 +192,9 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                 heading_rad: edge_heading,
                 leads_to: edge.to.clone(),
                 line_point_m: None,
-                lane_width_m: None,
+                lane: Vec::new(),
                 door_m: None,
+                wall_beyond_m: None,
             });
             turned = true;
         }
@@ -159,8 +205,9 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                 heading_rad,
                 leads_to: edge.to.clone(),
                 line_point_m: point,
-                lane_width_m: None,
+                lane: Vec::new(),
                 door_m: None,
+                wall_beyond_m: None,
             };
             match action {
                 Action::ExitRoom { door, length_m, .. }
@@ -204,15 +251,13 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                             *l0 += length_m;
                             doors.extend(new_doors);
                             *e0 = end;
+                            last.lane.push(LanePart { until_m: *l0, width_m: *width_m });
                         }
                         last.leads_to = edge.to.clone();
                         last.line_point_m = point;
-                        // one lane for the merged leg: the narrowest part, and none where a part
-                        // has no width
-                        last.lane_width_m = last.lane_width_m.zip(*width_m).map(|(a, b)| a.min(b));
                     } else {
                         legs.push(Leg {
-                            lane_width_m: *width_m,
+                            lane: vec![LanePart { until_m: *length_m, width_m: *width_m }],
                             ..leg(LegKind::Corridor { length_m: *length_m, doors: new_doors.collect(), end }, heading)
                         });
                     }
@@ -227,7 +272,27 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
             }
         }
     }
+    for leg in &mut legs {
+        if matches!(leg.kind, LegKind::Corridor { end: LegEnd::Distance, .. }) {
+            leg.wall_beyond_m = door_wall_beyond(map, &leg.leads_to, leg.heading_rad);
+        }
+    }
     legs
+}
+
+/// Where the map puts a door straight ahead of a robot that stops at `place` facing
+/// `heading_rad`: an edge out of `place` along that heading whose first action goes through a
+/// door with a known opening; how far beyond `place` the door's wall stands, m.
+fn door_wall_beyond(map: &TopoMap, place: &str, heading_rad: f64) -> Option<f64> {
+    const ALONG_RAD: f64 = 0.1;
+    map.edges
+        .iter()
+        .filter(|e| e.from == place && wrap_angle(e.heading_deg.to_radians() - heading_rad).abs() <= ALONG_RAD)
+        .find_map(|e| {
+            let first = e.actions.first()?;
+            let (_, before) = first.opening()?;
+            Some(first.length_m() - before).filter(|b| b.is_finite() && *b >= 0.0)
+        })
 }
 
 /// What the planner wants this step.
@@ -263,6 +328,14 @@ pub enum PafsisEvent {
     DoorMatched {
         door: Option<String>,
         at_m: Option<f64>,
+        correction_m: f64,
+    },
+    /// A wall or door seen straight ahead placed the end of leg `leg` ([`Leg::wall_beyond_m`]):
+    /// first seen `distance_m` ahead, moving the progress by `correction_m` (later frames of
+    /// the same leg move it further without an event).
+    WallAheadMatched {
+        leg: usize,
+        distance_m: f64,
         correction_m: f64,
     },
     /// A door sighting that matched nothing expected.
@@ -379,6 +452,13 @@ pub struct Pafsis {
     walls: Vec<WallSighting>,
     wall_fixes: WallFixes,
     flow_fixes: u64,
+    /// Legs whose end was placed from the wall seen ahead ([`Leg::wall_beyond_m`]), and whether
+    /// the current leg's was.
+    walls_ahead_matched: u64,
+    wall_ahead_seen: bool,
+    /// The current leg's first wall-ahead disagreements, m, until there are
+    /// [`WALL_AHEAD_FIRST_FRAMES`].
+    wall_ahead_first: Vec<f64>,
 }
 
 /// How much the side walls have moved the estimate so far.
@@ -431,6 +511,9 @@ impl Pafsis {
             walls: Vec::new(),
             wall_fixes: WallFixes::default(),
             flow_fixes: 0,
+            walls_ahead_matched: 0,
+            wall_ahead_seen: false,
+            wall_ahead_first: Vec::new(),
         };
         me.start_leg(0);
         Ok(me)
@@ -544,7 +627,8 @@ impl Pafsis {
             return;
         }
         let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
-        let lane = match (leg.lane_width_m, leg.line_point_m, self.position_m) {
+        let width = leg.lane_width_at(self.along_m, self.map.tolerance.window_m(self.along_m));
+        let lane = match (width, leg.line_point_m, self.position_m) {
             (Some(width), Some(point), Some(position)) => {
                 Some((left_of_line(position, point, leg.heading_rad), 0.5 * width))
             }
@@ -660,7 +744,8 @@ impl Pafsis {
             return None;
         }
         let leg = self.legs.get(self.leg)?;
-        let (width, point, position) = (leg.lane_width_m?, leg.line_point_m?, self.position_m?);
+        let width = leg.lane_width_at(self.along_m, self.map.tolerance.window_m(self.along_m))?;
+        let (point, position) = (leg.line_point_m?, self.position_m?);
         Some(Lane {
             left_m: left_of_line(position, point, leg.heading_rad),
             angle_rad: wrap_angle(leg.heading_rad - self.heading_rad),
@@ -708,6 +793,7 @@ impl Pafsis {
                 && p.obstacle.distance_m.is_some_and(|d| d <= stop)
                 && p.obstacle.bearing_rad.is_some_and(|b| b.abs() <= END_AHEAD_MAX_BEARING_RAD));
         self.end_streak = if end_ahead { self.end_streak.saturating_add(1) } else { 0 };
+        self.wall_ahead(shape, p);
         if shape != TpoShape::Door {
             self.tracking = None;
             self.last_door_distance = None;
@@ -748,6 +834,80 @@ impl Pafsis {
                 self.along_m += DOOR_TRACK_GAIN * innovation;
             }
         }
+    }
+
+    /// The wall-ahead fix: on a leg that ends facing a door ([`Leg::wall_beyond_m`]), a wall or a
+    /// door seen straight ahead for `landmark_min_frames` frames, between
+    /// [`WALL_AHEAD_MIN_RANGE_M`] and [`WALL_AHEAD_MAX_RANGE_M`] away (and expected no nearer
+    /// than the former), says how far the leg's end is. A robot that drifted sideways in a wide corridor turns into such a leg off its place
+    /// by the drift (dead reckoning cannot see it), and the leg's length alone then ends it that
+    /// far off. The median of the first [`WALL_AHEAD_FIRST_FRAMES`] sightings places the
+    /// progress, each gated by what the robot can be off: the map's window round the leg's
+    /// length plus half the corridor it came from. Later frames
+    /// move it by [`WALL_AHEAD_GAIN`] of what they say, and only within `landmark_gate_m`: near
+    /// the door the view goes through the opening, and the room's far wall must not pull the
+    /// robot in.
+    fn wall_ahead(&mut self, shape: TpoShape, p: &Perception) {
+        let Some(leg) = self.legs.get(self.leg) else { return };
+        let (LegKind::Corridor { length_m, .. }, Some(beyond)) = (&leg.kind, leg.wall_beyond_m) else {
+            return;
+        };
+        if !matches!(shape, TpoShape::Wall | TpoShape::Door)
+            || self.streak.1 < self.params.landmark_min_frames
+            || wrap_angle(self.heading_rad - leg.heading_rad).abs() > DOOR_MAX_OFF_AXIS_RAD
+        {
+            return;
+        }
+        // where the wall should be: nearer, the door's opening fills much of the view, and what
+        // is measured may be the room beyond it
+        let expected = length_m + beyond - self.along_m;
+        let in_range = |d: &f64| d.is_finite() && (WALL_AHEAD_MIN_RANGE_M..=WALL_AHEAD_MAX_RANGE_M).contains(d);
+        let Some(d) = p.tpo.distance_m.filter(in_range).filter(|_| expected >= WALL_AHEAD_MIN_RANGE_M) else {
+            return;
+        };
+        let innovation = expected - d;
+        if self.wall_ahead_seen {
+            if innovation.abs() <= self.params.landmark_gate_m {
+                self.along_m += WALL_AHEAD_GAIN * innovation;
+            }
+            return;
+        }
+        if innovation.abs() > self.wall_ahead_gate(self.leg) {
+            return;
+        }
+        // the disagreement stays put while the robot drives (both sides move with it): the
+        // median of the first few places the leg's end without one mis-ranged frame's error
+        self.wall_ahead_first.push(innovation);
+        if self.wall_ahead_first.len() < WALL_AHEAD_FIRST_FRAMES {
+            return;
+        }
+        self.wall_ahead_first.sort_by(f64::total_cmp);
+        let correction = self.wall_ahead_first[self.wall_ahead_first.len() / 2];
+        self.wall_ahead_first.clear();
+        self.along_m += correction;
+        self.wall_ahead_seen = true;
+        self.walls_ahead_matched += 1;
+        self.events.push(PafsisEvent::WallAheadMatched { leg: self.leg, distance_m: d, correction_m: correction });
+    }
+
+    /// How far the wall-ahead fix of leg `index` may move its progress, m: the map's window
+    /// round the leg's length, plus half the width of the corridor leg before it (the robot
+    /// may have been anywhere across it when it turned).
+    fn wall_ahead_gate(&self, index: usize) -> f64 {
+        let Some(leg) = self.legs.get(index) else { return 0.0 };
+        let LegKind::Corridor { length_m, .. } = leg.kind else { return 0.0 };
+        let came_from = self.legs[..index]
+            .iter()
+            .rev()
+            .find(|l| !matches!(l.kind, LegKind::Turn))
+            .filter(|l| matches!(l.kind, LegKind::Corridor { .. }))
+            .and_then(|l| l.lane.last().and_then(|part| part.width_m));
+        self.map.tolerance.window_m(length_m) + came_from.map_or(0.0, |w| 0.5 * w)
+    }
+
+    /// How many legs ended on the wall seen ahead so far ([`Pafsis::wall_ahead`]).
+    pub fn walls_ahead_matched(&self) -> u64 {
+        self.walls_ahead_matched
     }
 
     /// Matches a door sighting `distance` ahead (if known) against the next expected doors.
@@ -856,6 +1016,8 @@ impl Pafsis {
         self.next_door = 0;
         self.doors_sighted = 0;
         self.tracking = None;
+        self.wall_ahead_seen = false;
+        self.wall_ahead_first.clear();
         // A door already in view when the leg starts counts for the new leg.
         self.door_sighting_reported = false;
         self.last_door_distance = None;

@@ -9,7 +9,9 @@ pub mod map;
 pub mod walls;
 
 pub use global::{Mission, Plan, PlanError, plan};
-pub use local::{Doorway, Goal, GoalStatus, Lane, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress, WallFixes};
+pub use local::{
+    Doorway, Goal, GoalStatus, Lane, LanePart, Leg, LegKind, Pafsis, PafsisEvent, PoseHint, Progress, WallFixes,
+};
 pub use map::{Action, MapError, MapTolerance, PlaceKind, Side, TopoMap, Until};
 pub use walls::WallSighting;
 

@@ -222,6 +222,9 @@ pub struct SimSummary {
     pub tpo_frames: [u64; 5],
     /// Landmark events of PAFSIS: doors matched, landmarks missed, replans.
     pub doors_matched: u64,
+    /// Legs ending in front of a door whose end the wall seen ahead placed
+    /// ([`crate::pafsis::PafsisEvent::WallAheadMatched`]).
+    pub walls_ahead_matched: u64,
     pub landmarks_missed: u64,
     pub replans: u64,
     /// Frames whose side walls corrected PAFSIS's heading or offset ([`crate::pafsis::walls`]).
@@ -710,6 +713,7 @@ pub async fn run_with_camera<C: Camera>(
         first_contact,
         tpo_frames,
         doors_matched,
+        walls_ahead_matched: pipeline.pafsis().map_or(0, |p| p.walls_ahead_matched()),
         landmarks_missed,
         replans,
         wall_fixes: pipeline.pafsis().map_or(0, |p| p.wall_fixes().frames),
