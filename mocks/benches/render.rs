@@ -1,5 +1,5 @@
 //! Render speed of the simulated camera at the C310's 1280×720 (target: ≥ 30 frames/s on a
-//! 2-core machine). `cargo bench -p flownav-mocks --bench render`
+//! 2-core machine), and of the simulator's 320×180 views. `cargo bench -p flownav-mocks --bench render`
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use hal::{Calibration, LumaImage};
@@ -31,6 +31,14 @@ fn bench(c: &mut Criterion) {
     let pitched = Renderer::new(&world, &pitched_calib);
     g.bench_function("corridor_pitched_0.1rad", |b| {
         b.iter(|| pitched.render_frame(corridor, black_box(corridor), &Effects::default(), 0, &mut img))
+    });
+    g.finish();
+    // The views `flownav sim` renders: 320×180 with sensor noise.
+    let sim = Renderer::new(&world, &calib.scaled_to(320, 180));
+    let noise = Effects { noise_sigma: 2.0, seed: 0, ..Effects::default() };
+    let mut g = c.benchmark_group("render_sim");
+    g.bench_function("corridor_320x180_noise", |b| {
+        b.iter(|| sim.render_frame(corridor, black_box(corridor), &noise, 1, &mut img))
     });
     g.finish();
 }

@@ -106,17 +106,62 @@ impl DepthMap {
 #[derive(Clone, Copy, Debug)]
 struct Surface {
     kind: SurfaceKind,
-    albedo: f32,
-    contrast: f32,
+    /// Grey level of the texture's mean, `255 · albedo`.
+    bright: f32,
+    /// Twice the texture's contrast: grey = bright · shade · (1 + contrast2 · (texture − 0.5)).
+    contrast2: f32,
     /// Texture offset, m (different per surface so their textures differ).
     offset: [f32; 2],
+    /// Obstacles carry print (boxes) and folds (clothes) finer than the walls' texture.
+    detailed: bool,
+}
+
+impl Surface {
+    fn new(kind: SurfaceKind, albedo: f32, contrast: f32, offset: [f32; 2]) -> Self {
+        // the products are formed as in `255 · albedo · shade · (1 + contrast · 2 · (t − 0.5))`,
+        // left to right, so precomputing them leaves every grey level as it was
+        Self { kind, bright: 255.0 * albedo, contrast2: contrast * 2.0, offset, detailed: kind.is_obstacle() }
+    }
+
+    /// The grey level of texture value `t` lit by `gain` (`bright · shade`).
+    #[inline(always)]
+    fn grey(&self, gain: f32, t: f32) -> f32 {
+        gain * (1.0 + self.contrast2 * (t - 0.5))
+    }
 }
 
 #[derive(Clone, Copy, Debug)]
 enum Prim {
-    Face { a: [f64; 2], b: [f64; 2], z0: f64, z1: f64, along0: f64, surface: u32 },
-    Box { center: [f64; 2], cos: f64, sin: f64, hx: f64, hy: f64, h: f64, surface: u32 },
-    Cyl { center: [f64; 2], r: f64, h: f64, surface: u32 },
+    /// A wall face from `a` to `b`: its edge `e = b − a`, length, the unit normal
+    /// `(−e_y, e_x) / len` and the lighting of that normal and of its opposite (which of the two
+    /// faces the camera depends on the ray).
+    Face {
+        a: [f64; 2],
+        b: [f64; 2],
+        e: [f64; 2],
+        len: f64,
+        normal: [f64; 2],
+        shade: [f32; 2],
+        z0: f64,
+        z1: f64,
+        along0: f64,
+        surface: u32,
+    },
+    Box {
+        center: [f64; 2],
+        cos: f64,
+        sin: f64,
+        hx: f64,
+        hy: f64,
+        h: f64,
+        surface: u32,
+    },
+    Cyl {
+        center: [f64; 2],
+        r: f64,
+        h: f64,
+        surface: u32,
+    },
 }
 
 impl Prim {
@@ -137,22 +182,30 @@ impl Prim {
     }
 }
 
-/// Where a horizontal ray direction meets one solid.
+/// Lighting factor of a surface with horizontal unit normal `n`.
+fn light(n: [f64; 2]) -> f32 {
+    let l = (LIGHT[0] * n[0] + LIGHT[1] * n[1]) / (LIGHT[0].hypot(LIGHT[1]));
+    (0.8 + 0.2 * l) as f32
+}
+
+/// Where a horizontal ray direction meets one solid, with what shading the entry face needs
+/// from that direction.
 #[derive(Clone, Copy, Debug, Default)]
 struct Span {
     s_in: f64,
     s_out: f64,
     z0: f64,
     z1: f64,
+    /// `fx · max(|cos|, 1e-3)` of the angle between the ray's plan direction and the entry
+    /// face's normal: the pixel footprint's denominator.
+    fx_cos: f64,
     /// A solid (box, cylinder) has a top at `z1`; a face is thin.
     solid: bool,
     surface: u32,
-    /// Texture coordinate along the surface at the entry point, m.
+    /// Texture coordinate along the surface at the entry point plus the surface's offset, m.
     tu: f32,
-    /// Horizontal unit normal at the entry point, facing the camera.
-    normal: [f64; 2],
-    /// Lighting factor of the entry face.
-    shade: f32,
+    /// `bright · shade` of the entry face.
+    gain: f32,
 }
 
 /// Renders views of one world through one calibrated camera.
@@ -226,14 +279,14 @@ impl Renderer {
         let xn = (0..width).map(|u| (u as f64 - c.cx) / c.fx).collect();
         let yn = (0..height).map(|v| (v as f64 - c.cy) / c.fy).collect();
         let mut surfaces = vec![
-            Surface { kind: SurfaceKind::Floor, albedo: 0.42, contrast: 0.55, offset: [0.0, 0.0] },
-            Surface { kind: SurfaceKind::Ceiling, albedo: 0.85, contrast: 0.35, offset: [1.3, 2.9] },
+            Surface::new(SurfaceKind::Floor, 0.42, 0.55, [0.0, 0.0]),
+            Surface::new(SurfaceKind::Ceiling, 0.85, 0.35, [1.3, 2.9]),
         ];
         let mut add = |kind: SurfaceKind, albedo: f32, contrast: f32, key: u64| {
             let h = mix64(key);
             let offset = [(h & 0xffff) as f32 / 65536.0 * 8.0, ((h >> 16) & 0xffff) as f32 / 65536.0 * 8.0];
             let jitter = ((h >> 32) & 0xff) as f32 / 255.0 - 0.5;
-            surfaces.push(Surface { kind, albedo: albedo + 0.12 * jitter, contrast, offset });
+            surfaces.push(Surface::new(kind, albedo + 0.12 * jitter, contrast, offset));
             (surfaces.len() - 1) as u32
         };
         let mut prims = Vec::new();
@@ -247,7 +300,22 @@ impl Renderer {
                     ((f.wall as u64) << 20) ^ f.segment as u64 ^ 0xA11,
                 )
             });
-            prims.push(Prim::Face { a: f.a, b: f.b, z0: f.z0, z1: f.z1, along0: f.along0, surface });
+            let e = [f.b[0] - f.a[0], f.b[1] - f.a[1]];
+            let len = e[0].hypot(e[1]);
+            let normal = [-e[1] / len, e[0] / len];
+            let shade = [light(normal), light([-normal[0], -normal[1]])];
+            prims.push(Prim::Face {
+                a: f.a,
+                b: f.b,
+                e,
+                len,
+                normal,
+                shade,
+                z0: f.z0,
+                z1: f.z1,
+                along0: f.along0,
+                surface,
+            });
         }
         for (i, b) in world.boxes.iter().enumerate() {
             let surface = add(SurfaceKind::Box(i), 0.5, 0.55, 0xB0C5 ^ ((i as u64) << 24));
@@ -330,6 +398,18 @@ impl Renderer {
             self.trace(pose, Some(out.data_mut()), None, None);
             return;
         }
+        let (gain, offset, sigma) = (effects.gain as f32 / n as f32, effects.offset as f32, effects.noise_sigma as f32);
+        let seed = mix64(effects.seed ^ mix64(seq.wrapping_add(0x5EED)));
+        let w = self.width;
+        if n == 1 && self.lens.is_none() {
+            // one view through a pinhole (the simulator's frames): exposure and noise are
+            // applied as each row is traced, without a buffer of values in between
+            let view = self.view(from.lerp(&pose, 1.0));
+            out.data_mut().par_chunks_mut(w).enumerate().with_min_len(4).for_each(|(v, dst)| {
+                self.trace_row(&view, v, true, |u, h| dst[u] = expose(h.value, gain, offset, sigma, seed, v * w + u));
+            });
+            return;
+        }
         // a distorted lens: the pinhole view is accumulated, then warped
         let traced = self.lens.as_ref().map_or(self, |lens| &*lens.pinhole);
         let mut acc = vec![0f32; traced.width * traced.height];
@@ -343,29 +423,21 @@ impl Renderer {
             lens.bilinear(&acc, &mut warped, self.width);
             acc = warped;
         }
-        let (gain, offset, sigma) = (effects.gain as f32 / n as f32, effects.offset as f32, effects.noise_sigma as f32);
-        let seed = mix64(effects.seed ^ mix64(seq.wrapping_add(0x5EED)));
-        out.data_mut().par_chunks_mut(self.width).zip(acc.par_chunks(self.width)).enumerate().for_each(
-            |(row, (dst, src))| {
-                for (x, (d, &s)) in dst.iter_mut().zip(src).enumerate() {
-                    let mut v = s * gain + offset;
-                    if sigma > 0.0 {
-                        v += sigma * gaussian(seed ^ ((row * self.width + x) as u64).wrapping_mul(0x9E37_79B9));
-                    }
-                    *d = (v + 0.5).clamp(0.0, 255.0) as u8;
-                }
-            },
-        );
+        out.data_mut().par_chunks_mut(w).zip(acc.par_chunks(w)).enumerate().for_each(|(v, (dst, src))| {
+            for (u, (d, &s)) in dst.iter_mut().zip(src).enumerate() {
+                *d = expose(s, gain, offset, sigma, seed, v * w + u);
+            }
+        });
     }
 
     /// Grey values as `f32` (added to `acc` when `add`).
     fn trace_values(&self, pose: Pose, acc: &mut [f32], add: bool) {
-        let cam = CameraPose::of_robot(pose, &self.calib);
-        let spans = self.column_spans(&cam);
-        acc.par_chunks_mut(self.width).enumerate().for_each(|(v, row)| {
-            for (u, px) in row.iter_mut().enumerate() {
-                let h = self.pixel(&cam, &spans, u, v);
-                if add { *px += h.value } else { *px = h.value }
+        let view = self.view(pose);
+        acc.par_chunks_mut(self.width).enumerate().with_min_len(4).for_each(|(v, row)| {
+            if add {
+                self.trace_row(&view, v, true, |u, h| row[u] += h.value);
+            } else {
+                self.trace_row(&view, v, true, |u, h| row[u] = h.value);
             }
         });
     }
@@ -376,8 +448,7 @@ impl Renderer {
             lens.trace(pose, self.width, img, depth, ids);
             return;
         }
-        let cam = CameraPose::of_robot(pose, &self.calib);
-        let spans = self.column_spans(&cam);
+        let view = self.view(pose);
         let w = self.width;
         let rows = self.height;
         let img_rows: Vec<Option<&mut [G]>> = match img {
@@ -392,10 +463,11 @@ impl Renderer {
             Some(d) => d.chunks_mut(w).map(Some).collect(),
             None => (0..rows).map(|_| None).collect(),
         };
+        // depth and surface ids alone need no texture
+        let grey = img_rows.first().is_some_and(Option::is_some);
         img_rows.into_par_iter().zip(depth_rows).zip(id_rows).enumerate().with_min_len(4).for_each(
             |(v, ((mut img, mut depth), mut ids))| {
-                for u in 0..w {
-                    let h = self.pixel(&cam, &spans, u, v);
+                self.trace_row(&view, v, grey, |u, h| {
                     if let Some(r) = img.as_deref_mut() {
                         r[u] = G::from_value(h.value);
                     }
@@ -405,20 +477,33 @@ impl Renderer {
                     if let Some(r) = ids.as_deref_mut() {
                         r[u] = h.surface;
                     }
-                }
+                })
             },
         );
     }
 
-    /// Per column: the sorted spans of the column's direction (level camera), or the indices of
-    /// the solids within the column's wedge of directions (pitched camera).
-    fn column_spans(&self, cam: &CameraPose) -> ColumnData {
+    /// What every pixel of a view from `pose` shares: the camera and, per column, the sorted
+    /// spans of its direction (level camera) or the solids within its wedge of directions
+    /// (pitched camera).
+    fn view(&self, pose: Pose) -> View {
+        let cam = CameraPose::of_robot(pose, &self.calib);
         if cam.is_level() {
+            // With pitch 0 every pixel of column u has the plan direction of (x_n(u), 0) and
+            // every pixel of row v the vertical part of (0, y_n(v)) (`CameraPose::direction`:
+            // the row's cos − y_n·sin is exactly 1 and the column's x_n does not enter the
+            // vertical part), so both are computed once.
+            let columns: Vec<Column> = self
+                .xn
+                .iter()
+                .map(|&xn| {
+                    let (dh, _) = cam.direction(xn, 0.0);
+                    Column { dh, dh2: dh[0] * dh[0] + dh[1] * dh[1] }
+                })
+                .collect();
             let mut spans = vec![Span::default(); self.width * MAX_SPANS];
             let mut counts = vec![0u8; self.width];
-            spans.par_chunks_mut(MAX_SPANS).zip(counts.par_iter_mut()).enumerate().for_each(|(u, (out, count))| {
-                let (dh, _) = cam.direction(self.xn[u], 0.0);
-                let mut list: Vec<Span> = self.prims.iter().filter_map(|p| self.span(p, cam, dh)).collect();
+            spans.par_chunks_mut(MAX_SPANS).zip(counts.par_iter_mut()).zip(&columns).for_each(|((out, count), col)| {
+                let mut list: Vec<Span> = self.prims.iter().filter_map(|p| self.span(p, &cam, col.dh)).collect();
                 list.sort_by(|a, b| a.s_in.total_cmp(&b.s_in));
                 let mut n = 0;
                 for s in list.into_iter().take(MAX_SPANS) {
@@ -431,7 +516,7 @@ impl Renderer {
                 }
                 *count = n as u8;
             });
-            ColumnData::Level { spans, counts }
+            View::Level { cam, columns, spans, counts }
         } else {
             let top = self.yn[0];
             let bottom = self.yn[self.height - 1];
@@ -457,13 +542,51 @@ impl Renderer {
                         .collect()
                 })
                 .collect();
-            ColumnData::Pitched { candidates }
+            View::Pitched { cam, candidates }
         }
     }
 
-    /// The nearest hit of pixel (u, v).
-    #[inline]
-    fn pixel(&self, cam: &CameraPose, data: &ColumnData, u: usize, v: usize) -> Hit {
+    /// Traces row `v` of `view`, handing each pixel's hit to `put` with its column; without
+    /// `grey` the hits' values are left 0 (no texture is sampled).
+    #[inline(always)]
+    fn trace_row(&self, view: &View, v: usize, grey: bool, mut put: impl FnMut(usize, Hit)) {
+        match view {
+            View::Level { cam, columns, spans, counts } => {
+                let (_, dz) = cam.direction(0.0, self.yn[v]);
+                let zc = cam.position[2];
+                let (mut best0, mut base) = (f64::INFINITY, Target::Sky);
+                if dz < 0.0 {
+                    best0 = -zc / dz;
+                    base = Target::Floor;
+                } else if let Some(c) = self.ceiling.filter(|_| dz > 0.0) {
+                    best0 = (c - zc) / dz;
+                    base = Target::Ceiling;
+                }
+                let flat = Flat::of(self, dz);
+                for (u, (col, (spans, &count))) in
+                    columns.iter().zip(spans.chunks_exact(MAX_SPANS).zip(counts)).enumerate()
+                {
+                    let (mut best, mut what) = (best0, base);
+                    for s in &spans[..count as usize] {
+                        if s.s_in >= best {
+                            break;
+                        }
+                        consider(s, zc, dz, &mut best, &mut what);
+                    }
+                    let ray = Ray { dh: col.dh, dz, dir2: col.dh2 + flat.dz2, flat_fx_cos: flat.fx_cos };
+                    put(u, self.shade(cam, &ray, best, what, grey));
+                }
+            }
+            View::Pitched { cam, candidates } => {
+                for (u, candidates) in candidates.iter().enumerate() {
+                    put(u, self.pitched_pixel(cam, candidates, u, v, grey));
+                }
+            }
+        }
+    }
+
+    /// The nearest hit of pixel (u, v) of a pitched camera, from the solids in its column's wedge.
+    fn pitched_pixel(&self, cam: &CameraPose, candidates: &[u32], u: usize, v: usize, grey: bool) -> Hit {
         let (dh, dz) = cam.direction(self.xn[u], self.yn[v]);
         let zc = cam.position[2];
         let (mut best, mut what) = (f64::INFINITY, Target::Sky);
@@ -474,88 +597,84 @@ impl Renderer {
             best = (c - zc) / dz;
             what = Target::Ceiling;
         }
-        let consider = |s: &Span, best: &mut f64, what: &mut Target| {
-            let z = zc + s.s_in * dz;
-            if z >= s.z0 && z <= s.z1 {
-                *best = s.s_in;
-                *what = Target::Side(*s);
-            } else if s.solid && z > s.z1 && dz < 0.0 {
-                let st = (s.z1 - zc) / dz;
-                if st <= s.s_out && st < *best {
-                    *best = st;
-                    *what = Target::Top(s.surface);
-                }
-            }
-        };
-        match data {
-            ColumnData::Level { spans, counts } => {
-                for s in &spans[u * MAX_SPANS..u * MAX_SPANS + counts[u] as usize] {
-                    if s.s_in >= best {
-                        break;
+        // the span whose side is the nearest hit so far (spans are computed per pixel here)
+        let mut side: Option<Span> = None;
+        for &i in candidates {
+            if let Some(s) = self.span(&self.prims[i as usize], cam, dh)
+                && s.s_in < best
+            {
+                let mut got = Target::Sky;
+                consider(&s, zc, dz, &mut best, &mut got);
+                match got {
+                    Target::Side(_) => side = Some(s),
+                    Target::Top(surface) => {
+                        what = Target::Top(surface);
+                        side = None;
                     }
-                    consider(s, &mut best, &mut what);
-                }
-            }
-            ColumnData::Pitched { candidates } => {
-                for &i in &candidates[u] {
-                    if let Some(s) = self.span(&self.prims[i as usize], cam, dh)
-                        && s.s_in < best
-                    {
-                        consider(&s, &mut best, &mut what);
-                    }
+                    _ => {}
                 }
             }
         }
-        self.shade(cam, dh, dz, best, what)
+        let what = side.as_ref().map_or(what, Target::Side);
+        let ray = Ray { dh, dz, dir2: dh[0] * dh[0] + dh[1] * dh[1] + dz * dz, flat_fx_cos: Flat::of(self, dz).fx_cos };
+        self.shade(cam, &ray, best, what, grey)
     }
 
-    fn shade(&self, cam: &CameraPose, dh: [f64; 2], dz: f64, s: f64, what: Target) -> Hit {
-        let dir2 = dh[0] * dh[0] + dh[1] * dh[1] + dz * dz;
-        let fx = self.calib.camera.fx;
+    /// The grey level of a hit at `ray`'s parameter `s` (its depth); without `grey`, only the
+    /// depth and the surface.
+    #[inline(always)]
+    fn shade(&self, cam: &CameraPose, ray: &Ray, s: f64, what: Target, grey: bool) -> Hit {
+        let Ray { dh, dz, dir2, flat_fx_cos } = *ray;
         let at = |s: f64| [cam.position[0] + s * dh[0], cam.position[1] + s * dh[1]];
-        let (surface, tu, tv, cos_n, shade) = match what {
+        // texture coordinates before the surface's offset: (f64, f64), or a side's u with it
+        let (surface, tex, fx_cos) = match what {
             Target::Sky => return Hit { depth: f64::INFINITY, surface: u32::MAX, value: SKY },
-            Target::Floor => {
-                let p = at(s);
-                (0u32, p[0], p[1], dz.abs(), 1.0f32)
-            }
-            Target::Ceiling => {
-                let p = at(s);
-                (1u32, p[0], p[1], dz.abs(), 1.0)
-            }
+            Target::Floor => (0u32, Tex::Flat(at(s)), flat_fx_cos),
+            Target::Ceiling => (1u32, Tex::Flat(at(s)), flat_fx_cos),
             Target::Top(surface) => {
                 let p = at(s);
-                (surface, p[0] + 3.7, p[1] + 1.9, dz.abs(), 1.12)
+                (surface, Tex::Top([p[0] + 3.7, p[1] + 1.9]), flat_fx_cos)
             }
-            Target::Side(sp) => {
-                let z = cam.position[2] + s * dz;
-                let cos = (sp.normal[0] * dh[0] + sp.normal[1] * dh[1]).abs();
-                (sp.surface, sp.tu as f64, z, cos, sp.shade)
-            }
+            Target::Side(sp) => (sp.surface, Tex::Side(sp.tu, cam.position[2] + s * dz, sp.gain), sp.fx_cos),
         };
+        if !grey {
+            return Hit { depth: s, surface, value: 0.0 };
+        }
         let sf = &self.surfaces[surface as usize];
-        let footprint = (s * dir2 / (fx * cos_n.max(1e-3) * dir2.sqrt())) as f32;
-        let (tu, tv) = (tu as f32 + sf.offset[0], tv as f32 + sf.offset[1]);
-        // obstacles carry print (boxes) and folds (clothes) finer than the walls' texture
-        let t = if sf.kind.is_obstacle() {
-            self.tex.sample_detailed(tu, tv, footprint)
-        } else {
-            self.tex.sample(tu, tv, footprint)
+        let footprint = (s * dir2 / (fx_cos * dir2.sqrt())) as f32;
+        let (tu, tv, gain) = match tex {
+            Tex::Flat(p) => (p[0] as f32 + sf.offset[0], p[1] as f32 + sf.offset[1], sf.bright),
+            // the tops of boxes are lit 1.12 times
+            Tex::Top(p) => (p[0] as f32 + sf.offset[0], p[1] as f32 + sf.offset[1], sf.bright * 1.12),
+            Tex::Side(tu, z, gain) => (tu, z as f32 + sf.offset[1], gain),
         };
-        let value = 255.0 * sf.albedo * shade * (1.0 + sf.contrast * 2.0 * (t - 0.5));
-        Hit { depth: s, surface, value }
+        let t =
+            if sf.detailed { self.tex.sample_detailed(tu, tv, footprint) } else { self.tex.sample(tu, tv, footprint) };
+        Hit { depth: s, surface, value: sf.grey(gain, t) }
     }
 
     /// Where the horizontal ray from the camera along `dh` meets `prim`, if it does ahead.
     fn span(&self, prim: &Prim, cam: &CameraPose, dh: [f64; 2]) -> Option<Span> {
         let c = [cam.position[0], cam.position[1]];
-        let light = |n: [f64; 2]| {
-            let l = (LIGHT[0] * n[0] + LIGHT[1] * n[1]) / (LIGHT[0].hypot(LIGHT[1]));
-            (0.8 + 0.2 * l) as f32
-        };
+        // the entry face's shading seen along `dh`
+        let finish =
+            |s_in: f64, s_out: f64, z0: f64, z1: f64, solid: bool, surface: u32, tu: f64, n: [f64; 2], shade: f32| {
+                let sf = &self.surfaces[surface as usize];
+                let cos = (n[0] * dh[0] + n[1] * dh[1]).abs();
+                Some(Span {
+                    s_in,
+                    s_out,
+                    z0,
+                    z1,
+                    fx_cos: self.calib.camera.fx * cos.max(1e-3),
+                    solid,
+                    surface,
+                    tu: tu as f32 + sf.offset[0],
+                    gain: sf.bright * shade,
+                })
+            };
         match *prim {
-            Prim::Face { a, b, z0, z1, along0, surface } => {
-                let e = [b[0] - a[0], b[1] - a[1]];
+            Prim::Face { a, e, len, normal, shade, z0, z1, along0, surface, .. } => {
                 let den = cross(dh, e);
                 if den.abs() < 1e-12 {
                     return None;
@@ -566,23 +685,12 @@ impl Renderer {
                 if s <= 1e-9 || !(0.0..=1.0).contains(&t) {
                     return None;
                 }
-                let len = e[0].hypot(e[1]);
-                let mut n = [-e[1] / len, e[0] / len];
-                if n[0] * dh[0] + n[1] * dh[1] > 0.0 {
-                    n = [-n[0], -n[1]];
-                }
-                let shade = light(n);
-                Some(Span {
-                    s_in: s,
-                    s_out: s,
-                    z0,
-                    z1,
-                    solid: false,
-                    surface,
-                    tu: (along0 + t * len) as f32,
-                    normal: n,
-                    shade,
-                })
+                let (n, shade) = if normal[0] * dh[0] + normal[1] * dh[1] > 0.0 {
+                    ([-normal[0], -normal[1]], shade[1])
+                } else {
+                    (normal, shade[0])
+                };
+                finish(s, s, z0, z1, false, surface, along0 + t * len, n, shade)
             }
             Prim::Box { center, cos, sin, hx, hy, h, surface } => {
                 let o = [c[0] - center[0], c[1] - center[1]];
@@ -614,17 +722,7 @@ impl Renderer {
                 let nl = if axis == 0 { [sign, 0.0] } else { [0.0, sign] };
                 let n = [cos * nl[0] - sin * nl[1], sin * nl[0] + cos * nl[1]];
                 let tu = if axis == 0 { hit[1] + 5.0 * (sign + 2.0) } else { hit[0] + 5.0 * (sign + 4.0) };
-                Some(Span {
-                    s_in: t_in,
-                    s_out: t_out,
-                    z0: 0.0,
-                    z1: h,
-                    solid: true,
-                    surface,
-                    tu: tu as f32,
-                    normal: n,
-                    shade: light(n),
-                })
+                finish(t_in, t_out, 0.0, h, true, surface, tu, n, light(n))
             }
             Prim::Cyl { center, r, h, surface } => {
                 let o = [c[0] - center[0], c[1] - center[1]];
@@ -642,20 +740,37 @@ impl Renderer {
                 }
                 let p = [o[0] + t_in * dh[0], o[1] + t_in * dh[1]];
                 let n = [p[0] / r, p[1] / r];
-                Some(Span {
-                    s_in: t_in,
-                    s_out: t_out,
-                    z0: 0.0,
-                    z1: h,
-                    solid: true,
-                    surface,
-                    tu: (p[1].atan2(p[0]) * r) as f32,
-                    normal: n,
-                    shade: light(n),
-                })
+                finish(t_in, t_out, 0.0, h, true, surface, p[1].atan2(p[0]) * r, n, light(n))
             }
         }
     }
+}
+
+/// The span `s` if the ray of slope `dz` from height `zc` meets its side or its top before
+/// `best` (which it then becomes).
+#[inline(always)]
+fn consider<'a>(s: &'a Span, zc: f64, dz: f64, best: &mut f64, what: &mut Target<'a>) {
+    let z = zc + s.s_in * dz;
+    if z >= s.z0 && z <= s.z1 {
+        *best = s.s_in;
+        *what = Target::Side(s);
+    } else if s.solid && z > s.z1 && dz < 0.0 {
+        let st = (s.z1 - zc) / dz;
+        if st <= s.s_out && st < *best {
+            *best = st;
+            *what = Target::Top(s.surface);
+        }
+    }
+}
+
+/// Exposure, sensor noise and rounding of the value `s` of pixel `i` (row-major) of a frame.
+#[inline(always)]
+fn expose(s: f32, gain: f32, offset: f32, sigma: f32, seed: u64, i: usize) -> u8 {
+    let mut v = s * gain + offset;
+    if sigma > 0.0 {
+        v += sigma * gaussian(seed ^ (i as u64).wrapping_mul(0x9E37_79B9));
+    }
+    (v + 0.5).clamp(0.0, 255.0) as u8
 }
 
 impl Lens {
@@ -773,18 +888,58 @@ impl Lens {
     }
 }
 
-enum ColumnData {
-    Level { spans: Vec<Span>, counts: Vec<u8> },
-    Pitched { candidates: Vec<Vec<u32>> },
+/// Per-view data of [`Renderer::view`].
+enum View {
+    Level { cam: CameraPose, columns: Vec<Column>, spans: Vec<Span>, counts: Vec<u8> },
+    Pitched { cam: CameraPose, candidates: Vec<Vec<u32>> },
 }
 
+/// A pixel column of a level camera: its plan direction and that direction's squared length.
+struct Column {
+    dh: [f64; 2],
+    dh2: f64,
+}
+
+/// A pixel's ray `(dh, dz)`: plan direction and slope, its squared length `dir2`, and the
+/// footprint's denominator on a horizontal surface.
 #[derive(Clone, Copy)]
-enum Target {
+struct Ray {
+    dh: [f64; 2],
+    dz: f64,
+    dir2: f64,
+    flat_fx_cos: f64,
+}
+
+/// What the floor, the ceiling and the tops of boxes need of a ray's slope `dz`.
+struct Flat {
+    dz2: f64,
+    /// `fx · max(|dz|, 1e-3)`: the footprint's denominator on a horizontal surface.
+    fx_cos: f64,
+}
+
+impl Flat {
+    #[inline(always)]
+    fn of(r: &Renderer, dz: f64) -> Self {
+        Self { dz2: dz * dz, fx_cos: r.calib.camera.fx * dz.abs().max(1e-3) }
+    }
+}
+
+/// What a ray meets first.
+#[derive(Clone, Copy)]
+enum Target<'a> {
     Sky,
     Floor,
     Ceiling,
-    Side(Span),
+    Side(&'a Span),
     Top(u32),
+}
+
+/// Where a hit takes its texture: a plan point (floor, ceiling), a box top's plan point, or a
+/// side's coordinate along it (offset included), its height and its lighting.
+enum Tex {
+    Flat([f64; 2]),
+    Top([f64; 2]),
+    Side(f32, f64, f32),
 }
 
 /// An approximately standard-normal value from a hash (sum of four uniforms, Irwin–Hall).
@@ -966,6 +1121,38 @@ mod tests {
         let (ids, depth) = r.render_surfaces(poses[3]);
         let bytes = ids.iter().flat_map(|i| i.to_le_bytes()).chain(depth.data.iter().flat_map(|d| d.to_le_bytes()));
         assert_eq!(fingerprint(bytes), 14_638_333_303_054_208_351, "surface ids and depth");
+    }
+
+    /// The paths the simulator's views do not take, pinned like them: a pitched camera (per-pixel
+    /// intersection), a distorted lens (two passes) and motion blur with exposure (accumulated
+    /// values), so that a speed-up of one path cannot change another's output unnoticed.
+    #[test]
+    fn pitched_lens_and_blurred_views_are_pinned_bit_for_bit() {
+        let world = World::office().with_random_obstacles(1).unwrap();
+        let fx = Effects { noise_sigma: 2.0, seed: 1, ..Effects::default() };
+        let (a, b) = (Pose::new(14.0, 0.3, 3.0), Pose::new(9.0, 0.4, 1.5));
+        let surfaces = |ids: Vec<u32>, depth: DepthMap| -> Vec<u8> {
+            ids.iter().flat_map(|i| i.to_le_bytes()).chain(depth.data.iter().flat_map(|d| d.to_le_bytes())).collect()
+        };
+        let mut img = LumaImage::default();
+        let mut pitched = small();
+        pitched.mount.pitch_rad = 0.1;
+        let r = Renderer::new(&world, &pitched);
+        r.render_frame(a, a, &fx, 3, &mut img);
+        let (ids, depth) = r.render_surfaces(b);
+        let pitched: Vec<u8> = img.data().iter().copied().chain(surfaces(ids, depth)).collect();
+        let r = Renderer::new(&world, &distorted_wide());
+        r.render_frame(a, a, &fx, 3, &mut img);
+        let mut lens: Vec<u8> = img.data().iter().copied().chain(r.render(b).data().iter().copied()).collect();
+        let (ids, depth) = r.render_surfaces(a);
+        lens.extend(surfaces(ids, depth));
+        let r = Renderer::new(&world, &small());
+        let blur = Effects { noise_sigma: 3.0, seed: 2, blur_samples: 3, gain: 1.1, offset: -4.0 };
+        r.render_frame(a.advance(-0.3, 0.2, 0.1), a, &blur, 5, &mut img);
+        let blurred = img.data().to_vec();
+        assert_eq!(fingerprint(pitched), 13_441_642_304_231_375_879, "pitched camera");
+        assert_eq!(fingerprint(lens), 11_269_747_614_991_474_503, "distorted lens");
+        assert_eq!(fingerprint(blurred), 13_472_808_451_934_076_673, "motion blur and exposure");
     }
 
     #[test]

@@ -28,10 +28,18 @@ pub fn shared() -> &'static Texture {
 /// Mip levels of the tile: `SIZE`, `SIZE / 2`, …, 1 texels square.
 const LEVELS: usize = SIZE.trailing_zeros() as usize + 1;
 
+/// Texels of all levels together: `SIZE² · (1 + 1/4 + …)`.
+const PYRAMID: usize = (SIZE * SIZE * 4 - 1) / 3;
+
+/// Length of the texel buffer: a power of two, so that an index masked with `TEXELS − 1` is
+/// known to be within it and the sampler's texel reads need no bounds checks. The pages past
+/// the pyramid are never written (nor touched).
+const TEXELS: usize = PYRAMID.next_power_of_two();
+
 /// A tileable grey texture and its mip pyramid, values 0..=255.
 pub struct Texture {
     /// Every level in one buffer: level `l` is `(SIZE >> l)²` texels, row-major, from `offsets[l]`.
-    texels: Vec<u8>,
+    texels: Box<[u8; TEXELS]>,
     offsets: [usize; LEVELS],
     /// Texels per metre of each level, `1 / (TEXEL_M · 2^l)`, computed once rather than per sample.
     scales: [f32; LEVELS],
@@ -99,16 +107,21 @@ impl Texture {
         }
         let mut offsets = [0; LEVELS];
         let mut scales = [0.0; LEVELS];
-        let mut texels = Vec::with_capacity(levels.iter().map(Vec::len).sum());
+        let mut texels = vec![0u8; TEXELS].into_boxed_slice();
+        let mut at = 0;
         for (l, level) in levels.iter().enumerate() {
-            offsets[l] = texels.len();
+            offsets[l] = at;
             scales[l] = 1.0 / (TEXEL_M * (1 << l) as f32);
-            texels.extend_from_slice(level);
+            texels[at..at + level.len()].copy_from_slice(level);
+            at += level.len();
         }
+        debug_assert_eq!(at, PYRAMID);
+        let Ok(texels) = texels.try_into() else { unreachable!("the buffer was made TEXELS long") };
         Self { texels, offsets, scales }
     }
 
     /// Mip level `l`: `(SIZE >> l)²` texels, row-major.
+    #[cfg(test)]
     fn level(&self, l: usize) -> &[u8] {
         let size = SIZE >> l;
         &self.texels[self.offsets[l]..][..size * size]
@@ -117,15 +130,17 @@ impl Texture {
     /// The texture at surface point (u, v) in metres, for a pixel footprint of `footprint_m`
     /// metres on the surface: trilinear between the two mip levels around the footprint.
     /// Returns 0..=1 (mean 0.5).
-    #[inline]
+    #[inline(always)]
     pub fn sample(&self, u: f32, v: f32, footprint_m: f32) -> f32 {
         let lod = fast_log2(footprint_m / TEXEL_M).max(0.0);
         let max = (LEVELS - 1) as f32;
         if lod >= max {
             return self.texels[self.offsets[LEVELS - 1]] as f32 / 255.0;
         }
-        let l0 = lod as usize;
-        let f = lod - l0 as f32;
+        // 0 ≤ lod < LEVELS − 1 here: through i32 the conversions are exact and cheaper than
+        // the saturating float ↔ usize ones
+        let l0 = lod as i32 as usize;
+        let f = lod - l0 as i32 as f32;
         let a = self.bilinear(l0, u, v);
         if f < 0.01 {
             return a / 255.0;
@@ -144,30 +159,39 @@ impl Texture {
     #[inline]
     pub fn sample_detailed(&self, u: f32, v: f32, footprint_m: f32) -> f32 {
         let base = self.sample(u, v, footprint_m);
+        let fine_m = footprint_m * DETAIL_SCALE;
+        let coarse_m = fine_m.max(4.0 * TEXEL_M);
+        if coarse_m == fine_m {
+            // the band is empty (the two samples would be the same): `fine − coarse` is 0
+            return base + DETAIL_GAIN * 0.0;
+        }
         let (du, dv) = (u * DETAIL_SCALE + 0.37, v * DETAIL_SCALE + 0.61);
-        let fine = self.sample(du, dv, footprint_m * DETAIL_SCALE);
-        let coarse = self.sample(du, dv, (footprint_m * DETAIL_SCALE).max(4.0 * TEXEL_M));
+        let fine = self.sample(du, dv, fine_m);
+        let coarse = self.sample(du, dv, coarse_m);
         base + DETAIL_GAIN * (fine - coarse)
     }
 
-    #[inline]
+    // Always inlined: two to six calls per pixel, and the caller's level and coordinates let
+    // the compiler keep everything in registers.
+    #[inline(always)]
     fn bilinear(&self, level: usize, u: f32, v: f32) -> f32 {
-        let size = SIZE >> level;
+        let shift = SIZE.trailing_zeros() - level as u32;
+        let size = 1usize << shift;
         let mask = size as i32 - 1;
         let scale = self.scales[level];
         let x = u * scale - 0.5;
         let y = v * scale - 0.5;
         let (ix, fx) = floor_frac(x);
         let (iy, fy) = floor_frac(y);
-        let tex = self.level(level);
         let x0 = (ix & mask) as usize;
         let x1 = ((ix + 1) & mask) as usize;
-        let y0 = (iy & mask) as usize * size;
-        let y1 = ((iy + 1) & mask) as usize * size;
-        let a = tex[y0 + x0] as f32;
-        let b = tex[y0 + x1] as f32;
-        let c = tex[y1 + x0] as f32;
-        let d = tex[y1 + x1] as f32;
+        let base = self.offsets[level];
+        let row0 = base + (((iy & mask) as usize) << shift);
+        let row1 = base + ((((iy + 1) & mask) as usize) << shift);
+        // every index is below the pyramid's size: the mask changes none, it only shows the
+        // compiler that they are in bounds
+        let t = |i: usize| self.texels[i & (TEXELS - 1)] as f32;
+        let (a, b, c, d) = (t(row0 + x0), t(row0 + x1), t(row1 + x0), t(row1 + x1));
         let top = a + (b - a) * fx;
         let bot = c + (d - c) * fx;
         top + (bot - top) * fy
