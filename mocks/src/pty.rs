@@ -122,7 +122,8 @@ impl AsyncRead for Pty {
                 // opened it since: the read would block, so the hang-up is over. Tokio keeps a
                 // reported hang-up for good (it never clears "read closed"), so waiting on this
                 // registration again would report "ready" at once, every time, and this loop
-                // would spin in `read` until the driver sends a byte. A fresh registration
+                // would spin in `read` until the driver sends a byte (tokio's task budget only
+                // makes it yield every 128 tries and run again at once). A fresh registration
                 // starts with the state epoll reports now.
                 Err(_would_block) if stale_hangup => this.reregister()?,
                 Err(_would_block) => continue,
