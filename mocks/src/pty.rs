@@ -18,6 +18,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::task::{Context, Poll, ready};
+use tokio::io::Interest;
 use tokio::io::unix::AsyncFd;
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 
@@ -27,6 +28,8 @@ pub struct Pty {
     path: PathBuf,
     /// Bytes written to the master that the kernel refused because nobody is reading the slave.
     unread_dropped: Arc<AtomicU64>,
+    /// `read` calls made on the master (each a system call), successful or not.
+    read_calls: Arc<AtomicU64>,
 }
 
 impl Pty {
@@ -40,11 +43,9 @@ impl Pty {
         let flags = OFlag::from_bits_truncate(fcntl(&pair.master, FcntlArg::F_GETFL).map_err(io::Error::from)?);
         fcntl(&pair.master, FcntlArg::F_SETFL(flags | OFlag::O_NONBLOCK)).map_err(io::Error::from)?;
         let master = File::from(pair.master);
-        // SAFETY: the AsyncFd owns the file, so the descriptor stays open (and is not reused)
-        // until the AsyncFd is dropped, which deregisters it first.
-        let master = unsafe { AsyncFd::register(master) }.map_err(|e| e.into_parts().1)?;
+        let master = register(master)?;
         // `pair.slave` closes here: the driver's open is the only one.
-        Ok(Self { master, path, unread_dropped: Arc::new(AtomicU64::new(0)) })
+        Ok(Self { master, path, unread_dropped: Arc::new(AtomicU64::new(0)), read_calls: Arc::new(AtomicU64::new(0)) })
     }
 
     /// Whether some process has the slave (the port) open now: the master reports a hang-up
@@ -75,19 +76,56 @@ impl Pty {
     pub fn unread_dropped(&self) -> u64 {
         self.unread_dropped.load(Ordering::Relaxed)
     }
+
+    /// `read` system calls made on the master so far (what an idle or hung-up port costs).
+    pub fn read_calls(&self) -> u64 {
+        self.read_calls.load(Ordering::Relaxed)
+    }
+
+    /// Registers the master with the reactor afresh (a duplicate descriptor of the same open
+    /// file), dropping the old registration and its readiness state. Epoll reports the
+    /// master's state at registration, so nothing that is pending is lost.
+    fn reregister(&mut self) -> io::Result<()> {
+        let fresh = register(self.master.get_ref().try_clone()?)?;
+        // The old registration is removed and its descriptor closed here.
+        self.master = fresh;
+        Ok(())
+    }
+}
+
+/// Registers the master with the reactor for reading only: writes never wait (see
+/// [`Pty::poll_write`]), so write readiness would only wake the reactor for nothing.
+fn register(master: File) -> io::Result<AsyncFd<File>> {
+    // SAFETY: the AsyncFd owns the file, so the descriptor stays open (and is not reused)
+    // until the AsyncFd is dropped, which deregisters it first.
+    unsafe { AsyncFd::register_with_interest(master, Interest::READABLE) }.map_err(|e| e.into_parts().1)
 }
 
 impl AsyncRead for Pty {
     fn poll_read(self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
+        let this = self.get_mut();
         loop {
-            let mut guard = ready!(self.master.poll_read_ready(cx))?;
+            let mut guard = ready!(this.master.poll_read_ready(cx))?;
+            let stale_hangup = guard.ready().is_read_closed();
             let unfilled = buf.initialize_unfilled();
-            match guard.try_io(|f| f.get_ref().read(unfilled)) {
+            let read_calls = &this.read_calls;
+            match guard.try_io(|f| {
+                read_calls.fetch_add(1, Ordering::Relaxed);
+                f.get_ref().read(unfilled)
+            }) {
                 Ok(Ok(n)) => {
                     buf.advance(n);
                     return Poll::Ready(Ok(()));
                 }
                 Ok(Err(e)) => return Poll::Ready(Err(e)),
+                // The master reported a hang-up (no driver had the port open) and a driver has
+                // opened it since: the read would block, so the hang-up is over. Tokio keeps a
+                // reported hang-up for good (it never clears "read closed"), so waiting on this
+                // registration again would report "ready" at once, every time, and this loop
+                // would spin in `read` until the driver sends a byte (tokio's task budget only
+                // makes it yield every 128 tries and run again at once). A fresh registration
+                // starts with the state epoll reports now.
+                Err(_would_block) if stale_hangup => this.reregister()?,
                 Err(_would_block) => continue,
             }
         }
@@ -147,5 +185,62 @@ mod tests {
         assert!(!pty.peer_open(), "the driver closed the port");
         let _again = std::fs::OpenOptions::new().read(true).write(true).open(pty.path()).unwrap();
         assert!(pty.peer_open(), "reopened");
+    }
+
+    /// Polls one read of the idle port exactly once; returns the outcome and the `read` calls it
+    /// made. Should that poll keep retrying the read, a byte from the driver (after 1000 tries)
+    /// ends it, so the test fails instead of hanging.
+    fn poll_once_idle(pty: &mut Pty, port: std::fs::File) -> (Poll<io::Result<usize>>, u64, std::fs::File) {
+        use std::sync::atomic::AtomicBool;
+        let calls = pty.read_calls.clone();
+        let before = calls.load(Ordering::Relaxed);
+        let done = Arc::new(AtomicBool::new(false));
+        let watcher = {
+            let done = done.clone();
+            std::thread::spawn(move || {
+                let mut port = port;
+                while !done.load(Ordering::Relaxed) {
+                    if calls.load(Ordering::Relaxed) - before > 1000 {
+                        port.write_all(b"!").unwrap();
+                        break;
+                    }
+                    std::thread::sleep(std::time::Duration::from_millis(1));
+                }
+                port
+            })
+        };
+        let mut bytes = [0u8; 16];
+        let mut buf = ReadBuf::new(&mut bytes);
+        let waker = std::task::Waker::noop();
+        let polled = Pin::new(&mut *pty).poll_read(&mut Context::from_waker(waker), &mut buf);
+        let polled = polled.map_ok(|()| buf.filled().len());
+        done.store(true, Ordering::Relaxed);
+        let port = watcher.join().unwrap();
+        (polled, pty.read_calls() - before, port)
+    }
+
+    /// The master reports a hang-up while no driver has the port open; once a driver has opened
+    /// it, waiting for bytes on the idle port must wait, not retry `read`, and still see every
+    /// byte. Again after the driver hangs up and reconnects.
+    #[tokio::test]
+    async fn an_idle_port_costs_no_reads_after_a_hang_up() {
+        let mut pty = Pty::open().unwrap();
+        let mut buf = [0u8; 16];
+        for round in 0..2 {
+            // The reactor sees the hang-up: the read is tried and fails.
+            let e = pty.read(&mut buf).await.unwrap_err();
+            assert_eq!(e.raw_os_error(), Some(nix::errno::Errno::EIO as i32), "round {round}: {e}");
+            let port = std::fs::OpenOptions::new().read(true).write(true).open(pty.path()).unwrap();
+            let (polled, reads, mut port) = poll_once_idle(&mut pty, port);
+            assert!(polled.is_pending(), "round {round}: the idle port gave {polled:?} after {reads} reads");
+            assert_eq!(reads, 1, "round {round}: one read finds the hang-up over");
+            port.write_all(&[0xA5, 0x00, 0xFF]).unwrap();
+            let mut got = [0u8; 3];
+            pty.read_exact(&mut got).await.unwrap();
+            assert_eq!(got, [0xA5, 0x00, 0xFF], "round {round}");
+            let (polled, reads, port) = poll_once_idle(&mut pty, port);
+            assert!(polled.is_pending() && reads <= 1, "round {round}: {polled:?} after {reads} reads");
+            drop(port);
+        }
     }
 }

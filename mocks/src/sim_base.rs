@@ -562,6 +562,8 @@ async fn serve<D: SimDevice>(
                     lock(&device).receive(&bytes, &mut out);
                     received.notify_one();
                 }
+                // No driver has the port open (the read fails) and the master gets no event
+                // when one opens it, so look again in a while: one read per 10 ms.
                 _ => tokio::time::sleep(Duration::from_millis(10)).await,
             },
             _ = tick.tick() => {
