@@ -15,6 +15,8 @@ use super::prefilter::{self, Scratch};
 use super::sad::{self, Kernel};
 use super::{FlowEngine, FlowError, FlowField, FlowParams, FlowVector, Validity};
 use hal::LumaImage;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// A candidate that was abandoned by early termination: its cost exceeds the bound.
 const ABANDONED: u32 = u32::MAX;
@@ -44,19 +46,20 @@ pub struct CpuFlow {
     disp: Vec<(i32, i32)>,
     prev: Vec<(i32, i32)>,
     flags: Vec<(bool, bool)>,
-    /// One per band of block rows; band `k` runs on thread `k`.
-    bands: Vec<Band>,
-    /// The worker threads for more than one band (`FlowParams::cpu_threads`).
+    /// One per thread ([`Sweeps`]): thread 0 is the calling thread.
+    bufs: Vec<ThreadBufs>,
+    /// The worker threads for more than one thread (`FlowParams::cpu_threads`).
     pool: Option<rayon::ThreadPool>,
     field: FlowField,
 }
 
-/// The buffers of one band of block rows.
+/// One thread's buffers.
 #[derive(Debug, Default)]
-struct Band {
+struct ThreadBufs {
     block_buf: Vec<u8>,
     costs: Vec<u32>,
-    vectors: Vec<FlowVector>,
+    /// The displacements of the row this thread searched last (its next row's predictors).
+    adjacent: Vec<(i32, i32)>,
 }
 
 /// What every block of one pyramid level shares.
@@ -98,7 +101,7 @@ impl CpuFlow {
         } else {
             None
         };
-        self.bands.resize_with(n, Band::default);
+        self.bufs.resize_with(n, ThreadBufs::default);
         Ok(())
     }
 
@@ -124,7 +127,7 @@ impl CpuFlow {
             disp: Vec::new(),
             prev: Vec::new(),
             flags: Vec::new(),
-            bands: vec![Band::default()],
+            bufs: vec![ThreadBufs::default()],
             pool: None,
             field: FlowField::default(),
         }
@@ -151,7 +154,7 @@ impl FlowEngine for CpuFlow {
     }
 
     fn threads(&self) -> usize {
-        self.bands.len()
+        self.bufs.len()
     }
 
     fn compute(&mut self, a: &LumaImage, b: &LumaImage) -> Result<&FlowField, FlowError> {
@@ -191,9 +194,8 @@ impl FlowEngine for CpuFlow {
         self.field.height = h;
         self.field.vectors.clear();
 
-        // Bands of whole block rows; a band's first row has no upper neighbour to take a
-        // predictor from, which changes the order of the search, never its result.
-        let band_rows = rows.div_ceil(self.bands.len()).max(1);
+        // Every block row's outputs, for whichever thread claims the row.
+        self.field.vectors.resize(n, FlowVector::from_match((0, 0), p.block, (0, 0), (0.0, 0.0), Validity::Valid, 0));
         for l in (0..nlev).rev() {
             self.prev.clone_from(&self.disp);
             let job = LevelJob {
@@ -207,40 +209,84 @@ impl FlowEngine for CpuFlow {
                 rows,
                 cols,
             };
-            let work = self
+            let out: Vec<_> = self
                 .disp
-                .chunks_mut(band_rows * cols)
-                .zip(self.flags.chunks_mut(band_rows * cols))
-                .zip(self.bands.iter_mut())
-                .enumerate()
-                .map(|(k, ((disp, flags), band))| (k * band_rows * cols, disp, flags, band));
+                .chunks_mut(cols)
+                .zip(self.flags.chunks_mut(cols))
+                .zip(self.field.vectors.chunks_mut(cols))
+                .map(|((disp, flags), vectors)| Mutex::new(RowOut { disp, flags, vectors }))
+                .collect();
+            let sweeps = Sweeps::new(rows, self.bufs.len());
             match &self.pool {
-                // The first band on this thread, the others on the workers.
+                // The first sweep on this thread, the others on the workers.
                 Some(pool) => pool.in_place_scope(|scope| {
-                    let mut work = work;
-                    let mine = work.next();
-                    for (first, disp, flags, band) in work {
-                        let job = &job;
-                        scope.spawn(move |_| job.run(first, disp, flags, band));
+                    let mut all = self.bufs.iter_mut().enumerate();
+                    let mine = all.next();
+                    for (t, bufs) in all {
+                        let (job, out, sweeps) = (&job, &out, &sweeps);
+                        scope.spawn(move |_| sweeps.run(t, job, out, bufs));
                     }
-                    if let Some((first, disp, flags, band)) = mine {
-                        job.run(first, disp, flags, band);
+                    if let Some((t, bufs)) = mine {
+                        sweeps.run(t, &job, &out, bufs);
                     }
                 }),
-                None => work.for_each(|(first, disp, flags, band)| job.run(first, disp, flags, band)),
+                None => sweeps.run(0, &job, &out, &mut self.bufs[0]),
             }
-        }
-        let used = rows.div_ceil(band_rows);
-        for band in &self.bands[..used] {
-            self.field.vectors.extend_from_slice(&band.vectors);
         }
         Ok(&self.field)
     }
 }
 
+/// The outputs of one block row at the level being searched.
+struct RowOut<'a> {
+    disp: &'a mut [(i32, i32)],
+    flags: &'a mut [(bool, bool)],
+    /// Written at level 0 only.
+    vectors: &'a mut [FlowVector],
+}
+
+/// How the block rows of one level are shared among the threads. The rows are cut into
+/// segments, one per pair of threads; in each segment one thread claims rows from the top down
+/// and the other from the bottom up until they meet. A thread that starts late (a worker woken
+/// from sleep when frames come 33 ms apart can take milliseconds) leaves its rows to its partner
+/// instead of making it wait, and each thread takes its predictor from the row it searched
+/// before, so only a segment's first row on each side searches without one.
+struct Sweeps {
+    /// Per segment: its first row, its row count, and how many rows were claimed.
+    segments: Vec<(usize, usize, AtomicUsize)>,
+}
+
+impl Sweeps {
+    fn new(rows: usize, threads: usize) -> Self {
+        let count = threads.div_ceil(2).max(1);
+        let bounds = |k: usize| k * rows / count;
+        Self { segments: (0..count).map(|k| (bounds(k), bounds(k + 1) - bounds(k), AtomicUsize::new(0))).collect() }
+    }
+
+    /// Thread `t`'s share: the rows it claims in its segment, from its end, until none is left.
+    fn run(&self, t: usize, job: &LevelJob, out: &[Mutex<RowOut>], bufs: &mut ThreadBufs) {
+        let (first, len, claimed) = &self.segments[t / 2];
+        let down = t % 2 == 0;
+        let mut adjacent = std::mem::take(&mut bufs.adjacent);
+        adjacent.clear();
+        for k in 0..*len {
+            if claimed.fetch_add(1, Ordering::Relaxed) >= *len {
+                break;
+            }
+            let r = if down { first + k } else { first + len - 1 - k };
+            let mut row = out[r].lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            job.run(r, &mut row, (k > 0).then_some(&adjacent[..]), bufs);
+            adjacent.clear();
+            adjacent.extend_from_slice(row.disp);
+        }
+        bufs.adjacent = adjacent;
+    }
+}
+
 impl LevelJob<'_> {
-    /// Searches the blocks `first..first + disp.len()` (whole rows) at this level.
-    fn run(&self, first: usize, disp: &mut [(i32, i32)], flags: &mut [(bool, bool)], band: &mut Band) {
+    /// Searches the blocks of row `r` at this level; `adjacent` holds the displacements of the
+    /// row above or below, when this thread searched it just before.
+    fn run(&self, r: usize, row: &mut RowOut, adjacent: Option<&[(i32, i32)]>, bufs: &mut ThreadBufs) {
         let (p, lev, l, cols) = (self.params, self.lev, self.l, self.cols);
         let bs = p.block;
         let (wl, hl) = (lev.hp_a.width(), lev.hp_a.height());
@@ -248,11 +294,9 @@ impl LevelJob<'_> {
         let bl = super::level_block(bs, l);
         let kernel = self.kernel;
         let amb_q8 = p.ambiguity_q8();
-        band.block_buf.resize(bs * bs, 0);
-        band.vectors.clear();
-        for j in 0..disp.len() {
-            let i = first + j;
-            let (r, c) = (i / cols, i % cols);
+        bufs.block_buf.resize(bs * bs, 0);
+        for c in 0..cols {
+            let i = r * cols + c;
             let (ox, oy) = self.origins[i];
             let x0 = level_origin(ox, bs, bl, l, wl);
             let y0 = level_origin(oy, bs, bl, l, hl);
@@ -263,45 +307,29 @@ impl LevelJob<'_> {
                 (2 * m.0, 2 * m.1)
             };
             let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
-            let blk = &mut band.block_buf[..bl * bl];
+            let blk = &mut bufs.block_buf[..bl * bl];
             copy_block(&lev.hp_a, x0, y0, bl, blk);
             let mut preds = [None; 3];
             preds[0] = Some(win.centre);
             if c > 0 {
-                preds[1] = Some(disp[j - 1]);
+                preds[1] = Some(row.disp[c - 1]);
             }
-            if j >= cols {
-                preds[2] = Some(disp[j - cols]);
+            if let Some(adjacent) = adjacent {
+                preds[2] = Some(adjacent[c]);
             }
             let query = Query { a: blk, b: &lev.hp_b, x0, y0, block: bl, win, preds, amb_q8 };
-            let found = search(kernel, &query, &mut band.costs);
-            disp[j] = found.d;
-            flags[j].0 |= found.edge;
-            flags[j].1 |= found.ambiguous;
+            let found = search(kernel, &query, &mut bufs.costs);
+            row.disp[c] = found.d;
+            let flags = &mut row.flags[c];
+            flags.0 |= found.edge;
+            flags.1 |= found.ambiguous;
             if l == 0 {
-                let st = level0_stats(kernel, &band.block_buf, &lev.hp_b, x0, y0, bs, &win, found.d);
+                let st = level0_stats(kernel, &bufs.block_buf, &lev.hp_b, x0, y0, bs, &win, found.d);
                 let textureless = 16 * st.texture < p.min_texture_q4() * (2 * bs * (bs - 1)) as u64;
-                let validity = if textureless {
-                    Validity::Textureless
-                } else if flags[j].0 {
-                    Validity::OutOfFrame
-                } else if flags[j].1 {
-                    Validity::Ambiguous
-                } else {
-                    Validity::Valid
-                };
-                let d = found.d;
                 let [xm, xp, ym, yp] = st.ssd_neighbours;
-                let du = parabola(xm, st.ssd, xp);
-                let dv = parabola(ym, st.ssd, yp);
-                band.vectors.push(FlowVector {
-                    x: (ox + bs / 2) as f32,
-                    y: (oy + bs / 2) as f32,
-                    u: (f64::from(d.0) + du) as f32,
-                    v: (f64::from(d.1) + dv) as f32,
-                    validity,
-                    cost: found.cost as f32 / (bs * bs) as f32,
-                });
+                let sub = (parabola(xm, st.ssd, xp), parabola(ym, st.ssd, yp));
+                let validity = Validity::of(textureless, flags.0, flags.1);
+                row.vectors[c] = FlowVector::from_match((ox, oy), bs, found.d, sub, validity, found.cost);
             }
         }
     }

@@ -48,6 +48,20 @@ impl Validity {
         self == Validity::Valid
     }
 
+    /// The verdict on a block from its three findings, in the contract's order of precedence:
+    /// no texture, then a match on the window's edge, then an ambiguous one.
+    pub(crate) fn of(textureless: bool, out_of_frame: bool, ambiguous: bool) -> Self {
+        if textureless {
+            Validity::Textureless
+        } else if out_of_frame {
+            Validity::OutOfFrame
+        } else if ambiguous {
+            Validity::Ambiguous
+        } else {
+            Validity::Valid
+        }
+    }
+
     /// The snake_case name used in JSON output (`"valid"`, `"textureless"`, ...).
     pub fn name(self) -> &'static str {
         match self {
@@ -76,6 +90,27 @@ pub struct FlowVector {
 impl FlowVector {
     pub fn valid(&self) -> bool {
         self.validity.is_valid()
+    }
+
+    /// A block's vector as both engines finish it: the block of side `block` at level-0 origin
+    /// `origin`, its best integer displacement `d` with the sub-pixel offsets `sub`, and the
+    /// block's SAD `cost` at `d`.
+    pub(crate) fn from_match(
+        origin: (usize, usize),
+        block: usize,
+        d: (i32, i32),
+        sub: (f64, f64),
+        validity: Validity,
+        cost: u32,
+    ) -> Self {
+        Self {
+            x: (origin.0 + block / 2) as f32,
+            y: (origin.1 + block / 2) as f32,
+            u: (f64::from(d.0) + sub.0) as f32,
+            v: (f64::from(d.1) + sub.1) as f32,
+            validity,
+            cost: cost as f32 / (block * block) as f32,
+        }
     }
 }
 
@@ -159,8 +194,8 @@ pub struct FlowParams {
     /// A block is `ambiguous` when another local minimum of the cost, at least 2 px away from the
     /// best, costs at most (1 + ambiguity_ratio) × the best cost. Quantised to 1/256.
     pub ambiguity_ratio: f32,
-    /// Threads the CPU engine splits a frame pair over (bands of block rows; the result is the
-    /// same for any count). 0 = one per core, up to 4. The GPU engine ignores it.
+    /// Threads the CPU engine shares a frame pair's block rows among (the result is the same
+    /// for any count). 0 = one per core, up to 4. The GPU engine ignores it.
     pub cpu_threads: usize,
 }
 

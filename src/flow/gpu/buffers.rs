@@ -321,22 +321,7 @@ pub(super) fn fill_field(p: &FlowParams, sized: &Sized, words: &[u32], field: &m
         let du = crate::flow::cpu::parabola(s(4, rec[5]), s0, s(8, rec[6]));
         let dv = crate::flow::cpu::parabola(s(16, rec[7]), s0, s(32, rec[8]));
         let textureless = 16 * u64::from(rec[9]) < tq * (2 * bs * (bs - 1)) as u64;
-        let validity = if textureless {
-            Validity::Textureless
-        } else if f & 1 != 0 {
-            Validity::OutOfFrame
-        } else if f & 2 != 0 {
-            Validity::Ambiguous
-        } else {
-            Validity::Valid
-        };
-        field.vectors.push(FlowVector {
-            x: (ox + bs / 2) as f32,
-            y: (oy + bs / 2) as f32,
-            u: (f64::from(d.0) + du) as f32,
-            v: (f64::from(d.1) + dv) as f32,
-            validity,
-            cost: c1 as f32 / (bs * bs) as f32,
-        });
+        let validity = Validity::of(textureless, f & 1 != 0, f & 2 != 0);
+        field.vectors.push(FlowVector::from_match((ox, oy), bs, d, (du, dv), validity, c1));
     }
 }
