@@ -3,7 +3,7 @@
 //! Time limits here only guard against hangs; no test asserts how fast anything is.
 
 use hal::fnp::{self, Decoder, Direction, Packet};
-use hal::fnp_driver::{FnpBase, FnpConfig};
+use hal::fnp_driver::{FnpBase, FnpConfig, SerialBaseError};
 use hal::{BaseEvent, BodyVelocity, Error, ErrorKind, MotorBase};
 use mocks::faults::FaultConfig;
 use mocks::sim_base::{ServeOptions, SimBase, SimBaseConfig, SimClock, SimServer};
@@ -45,6 +45,22 @@ async fn read_until(
                 return f;
             }
         }
+    }
+}
+
+/// Polls the driver until it reports an error (the link lost).
+async fn first_error(base: &mut FnpBase) -> SerialBaseError {
+    loop {
+        if let Err(e) = base.next_event(Duration::from_secs(1)).await {
+            return e;
+        }
+    }
+}
+
+/// Polls the driver until its link is up again.
+async fn until_connected(base: &mut FnpBase) {
+    while !base.link_stats().connected {
+        let _ = base.next_event(Duration::from_millis(50)).await;
     }
 }
 
@@ -176,25 +192,11 @@ async fn driver_reconnects_after_the_port_vanishes() {
     let mut server = SimServer::start(SimBase::new(SimBaseConfig::default()), opts).unwrap();
     let mut base = timeout(GUARD, FnpBase::connect(FnpConfig::new(link.to_string_lossy()))).await.unwrap().unwrap();
     server.disconnect(Duration::from_millis(300));
-    let err = timeout(GUARD, async {
-        loop {
-            if let Err(e) = base.next_event(Duration::from_secs(1)).await {
-                return e;
-            }
-        }
-    })
-    .await
-    .unwrap();
+    let err = timeout(GUARD, first_error(&mut base)).await.unwrap();
     assert_eq!(err.kind(), ErrorKind::Disconnected);
     assert!(base.set_velocity(BodyVelocity::new(0.1, 0.0)).is_err(), "commands are refused while the link is down");
     timeout(GUARD, server.wait_reopened(0)).await.unwrap();
-    timeout(GUARD, async {
-        while !base.link_stats().connected {
-            let _ = base.next_event(Duration::from_millis(100)).await;
-        }
-    })
-    .await
-    .unwrap();
+    timeout(GUARD, until_connected(&mut base)).await.unwrap();
     let stats = base.link_stats();
     assert_eq!((stats.disconnects, stats.reconnects), (1, 1));
     // Closing the pty hangs the port up: a loss the OS reported, whatever the silence timer did.
@@ -211,15 +213,7 @@ async fn a_silent_base_is_a_loss_declared_by_the_silence_timeout() {
     let mut cfg = FnpConfig::new(server.pty_path().to_string_lossy());
     cfg.silence_timeout = Duration::from_millis(100);
     let mut base = timeout(GUARD, FnpBase::connect(cfg)).await.unwrap().unwrap();
-    let err = timeout(GUARD, async {
-        loop {
-            if let Err(e) = base.next_event(Duration::from_secs(1)).await {
-                return e;
-            }
-        }
-    })
-    .await
-    .unwrap();
+    let err = timeout(GUARD, first_error(&mut base)).await.unwrap();
     assert!(err.to_string().contains("nothing received for 100 ms"), "{err}");
     let stats = base.link_stats();
     // The port is still there, so every loss (the driver may have reconnected and gone silent
@@ -271,13 +265,7 @@ async fn a_hang_up_during_a_reconnect_is_counted_apart() {
     third.link_at(&link).unwrap();
     drop(second);
     timeout(GUARD, await_hello(&mut third, true)).await.unwrap();
-    timeout(GUARD, async {
-        while !base.link_stats().connected {
-            let _ = base.next_event(Duration::from_millis(50)).await;
-        }
-    })
-    .await
-    .unwrap();
+    timeout(GUARD, until_connected(&mut base)).await.unwrap();
     let stats = base.link_stats();
     assert_eq!((stats.disconnects, stats.reconnects), (1, 1), "{stats:?}");
     assert_eq!((stats.disconnects_os, stats.disconnects_silence, stats.hangups_reconnecting), (1, 0, 1), "{stats:?}");
