@@ -266,7 +266,7 @@ impl Sweeps {
     /// Thread `t`'s share: the rows it claims in its segment, from its end, until none is left.
     fn run(&self, t: usize, job: &LevelJob, out: &[Mutex<RowOut>], bufs: &mut ThreadBufs) {
         let (first, len, claimed) = &self.segments[t / 2];
-        let down = t % 2 == 0;
+        let down = t.is_multiple_of(2);
         let mut adjacent = std::mem::take(&mut bufs.adjacent);
         adjacent.clear();
         for k in 0..*len {
