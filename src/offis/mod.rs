@@ -104,7 +104,7 @@ impl OffisParams {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         let t = &self.temporal;
-        let checks: [(&str, bool, &str); 18] = [
+        let checks: [(&str, bool, &str); 19] = [
             ("outlier.k_median", pos(self.outlier.k_median), "must be a positive number (typ. 2..5)"),
             ("outlier.floor_px", nonneg(self.outlier.floor_px), "must be ≥ 0 pixels"),
             ("outlier.min_support", self.outlier.min_support <= 8, "must be in 0..=8 neighbours"),
@@ -139,6 +139,7 @@ impl OffisParams {
                 pos(t.max_turn_rad) && pos(t.max_age_s),
                 "and temporal.max_age_s must be positive",
             ),
+            ("temporal.min_baseline_px", nonneg(t.min_baseline_px), "must be ≥ 0 pixels (0: off)"),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err(ConfigError::invalid(format!("offis.{field}"), *problem)),
@@ -454,9 +455,11 @@ impl Offis {
         } else {
             Decision::default()
         };
-        // the decision over the last steps; a step without translation measures nothing
+        // the decision over the last steps; a step without translation, or with too short a
+        // baseline for its depth to be more than matching noise, measures nothing
         self.filter.advance(since);
-        let filtered = if foe.is_some() { self.filter.push(&decision) } else { self.filter.held() };
+        let evidence = foe.is_some() && odo.v.abs() * dt * cam.fx >= self.params.temporal.min_baseline_px;
+        let filtered = if evidence { self.filter.push(&decision) } else { self.filter.held() };
 
         // The obstacle: blocks clearly nearer than the TPO's surface in their bin, grouped into
         // 8-connected clusters; the nearest sizeable cluster, its cell by Fig. 6 on its blocks.

@@ -39,11 +39,16 @@ pub struct TemporalParams {
     pub max_turn_rad: f64,
     /// ... or once it is older than this, s (also the longest gap between frames bridged).
     pub max_age_s: f64,
+    /// A pair adds to the window only when its travel times the focal length reaches this,
+    /// pixels (the shift of a point 1 m away across the view: the baseline in the units of the
+    /// matching noise, so the same at every resolution); a shorter pair reports the window's
+    /// decision, as a step without translation does. 0: every translating pair counts.
+    pub min_baseline_px: f64,
 }
 
 impl Default for TemporalParams {
     fn default() -> Self {
-        Self { window: 8, decay: 0.8, max_turn_rad: 0.25, max_age_s: 1.0 }
+        Self { window: 8, decay: 0.8, max_turn_rad: 0.25, max_age_s: 1.0, min_baseline_px: 8.0 }
     }
 }
 

@@ -327,22 +327,70 @@ fn the_floor_is_never_the_obstacle() {
     assert!(!offis.step(&pair.field, vel, DT, &c).unwrap().obstacle.present);
 }
 
+/// The flow of a door 2.6 m ahead, the room's back wall 3 m beyond it.
+fn door_ahead(c: &Calibration, vel: BodyVelocity) -> FlowField {
+    let rects = vec![
+        Rect::frontal(2.6, [0.5, 10.0], Z),
+        Rect::frontal(2.6, [-10.0, -0.5], Z),
+        Rect::frontal(5.6, [-10.0, 10.0], Z),
+        Rect::floor(),
+    ];
+    Scene { rects }.flow(c, 16, 16, vel, DT).field
+}
+
+/// The same wall without its opening: what a pair sees when something hides the opening.
+fn door_ahead_hidden(c: &Calibration, vel: BodyVelocity) -> FlowField {
+    Scene { rects: vec![Rect::frontal(2.6, [-10.0, 10.0], Z), Rect::floor()] }.flow(c, 16, 16, vel, DT).field
+}
+
+#[test]
+fn a_pair_with_too_short_a_baseline_adds_nothing_to_the_window() {
+    // the nominal C310 at 1280x720: fx = 1272 px, so the default 8 px asks for 6.3 mm of travel
+    let c = Calibration::nominal_c310();
+    let (vel, slow) = (BodyVelocity::new(0.5, 0.0), BodyVelocity::new(0.05, 0.0));
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT };
+    let mut offis = Offis::new(OffisParams::default()).unwrap();
+    let door = door_ahead(&c, vel);
+    for _ in 0..2 {
+        assert_eq!(offis.step_filtered(&door, vel, DT, &c, ahead).unwrap().tpo.shape, TpoShape::Door);
+    }
+    // two pairs of 5 mm (6.4 px) of a wall: the door's evidence is all there is
+    let short = door_ahead_hidden(&c, slow);
+    for _ in 0..2 {
+        let p = offis.step_filtered(&short, slow, DT, &c, ahead).unwrap();
+        assert_eq!((p.tpo.shape, offis.attributes().filtered.steps), (TpoShape::Door, 2));
+    }
+    // the wall with a pair of 5 cm counts
+    let long = door_ahead_hidden(&c, vel);
+    offis.step_filtered(&long, vel, DT, &c, ahead).unwrap();
+    assert_eq!(offis.attributes().filtered.steps, 3);
+    // with the gate off the short pair counts too
+    let mut params = OffisParams::default();
+    params.temporal.min_baseline_px = 0.0;
+    let mut open = Offis::new(params).unwrap();
+    open.step_filtered(&door, vel, DT, &c, ahead).unwrap();
+    open.step_filtered(&short, slow, DT, &c, ahead).unwrap();
+    assert_eq!(open.attributes().filtered.steps, 2);
+}
+
+#[test]
+fn the_baseline_gate_scales_with_the_resolution() {
+    // 1 cm of travel: 12.7 px at 1280x720 (counts), 3.2 px at 320x180 (does not)
+    let vel = BodyVelocity::new(0.1, 0.0);
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT };
+    for (size, steps) in [((1280, 720), 1), ((320, 180), 0)] {
+        let c = Calibration::nominal_c310().scaled_to(size.0, size.1);
+        let mut offis = Offis::new(OffisParams::default()).unwrap();
+        offis.step_filtered(&door_ahead(&c, vel), vel, DT, &c, ahead).unwrap();
+        assert_eq!(offis.attributes().filtered.steps, steps, "{size:?}");
+    }
+}
+
 #[test]
 fn step_filtered_holds_the_class_through_one_odd_pair_and_forgets_it_after_a_turn() {
     let c = Calibration::nominal_c310();
     let vel = BodyVelocity::new(0.5, 0.0);
-    let floor = Rect::floor();
-    let door = Scene {
-        rects: vec![
-            Rect::frontal(2.6, [0.5, 10.0], Z),
-            Rect::frontal(2.6, [-10.0, -0.5], Z),
-            Rect::frontal(5.6, [-10.0, 10.0], Z),
-            floor,
-        ],
-    };
-    // the same wall without its opening: what a pair sees when something hides the opening
-    let hidden = Scene { rects: vec![Rect::frontal(2.6, [-10.0, 10.0], Z), floor] };
-    let (door, hidden) = (door.flow(&c, 16, 16, vel, DT).field, hidden.flow(&c, 16, 16, vel, DT).field);
+    let (door, hidden) = (door_ahead(&c, vel), door_ahead_hidden(&c, vel));
     let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT };
     let mut offis = Offis::new(OffisParams::default()).unwrap();
     for _ in 0..4 {
@@ -382,6 +430,7 @@ fn the_temporal_table_is_range_checked() {
     assert_eq!(bad(temporal::TemporalParams { window: 0, ..t }), "offis.temporal.window");
     assert_eq!(bad(temporal::TemporalParams { decay: 1.5, ..t }), "offis.temporal.decay");
     assert_eq!(bad(temporal::TemporalParams { max_age_s: 0.0, ..t }), "offis.temporal.max_turn_rad");
+    assert_eq!(bad(temporal::TemporalParams { min_baseline_px: -1.0, ..t }), "offis.temporal.min_baseline_px");
     let parsed: OffisParams = toml::from_str("[temporal]\nwindow = 1\n").unwrap();
     assert_eq!((parsed.temporal.window, parsed.temporal.decay), (1, 0.8));
 }
