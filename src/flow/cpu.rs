@@ -15,7 +15,6 @@ use super::prefilter::{self, Scratch};
 use super::sad::{self, Kernel};
 use super::{FlowEngine, FlowError, FlowField, FlowParams, FlowVector, Validity};
 use hal::LumaImage;
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// A candidate that was abandoned by early termination: its cost exceeds the bound.
@@ -43,11 +42,14 @@ pub struct CpuFlow {
     levels: Vec<Level>,
     scratch: Scratch,
     origins: Vec<(usize, usize)>,
+    /// The frame size `origins` was placed for.
+    origins_size: Option<(usize, usize)>,
     disp: Vec<(i32, i32)>,
     prev: Vec<(i32, i32)>,
     flags: Vec<(bool, bool)>,
     /// One per thread ([`Sweeps`]): thread 0 is the calling thread.
     bufs: Vec<ThreadBufs>,
+    sweeps: Sweeps,
     /// The worker threads for more than one thread (`FlowParams::cpu_threads`).
     pool: Option<rayon::ThreadPool>,
     field: FlowField,
@@ -58,8 +60,41 @@ pub struct CpuFlow {
 struct ThreadBufs {
     block_buf: Vec<u8>,
     costs: Vec<u32>,
-    /// The displacements of the row this thread searched last (its next row's predictors).
-    adjacent: Vec<(i32, i32)>,
+    out: RowsOut,
+}
+
+/// The block rows one thread searched at the level in progress, in the order it claimed them;
+/// copied into the engine's level-wide buffers once every thread is done, so that no thread
+/// writes where another reads.
+#[derive(Debug, Default)]
+struct RowsOut {
+    rows: Vec<usize>,
+    /// `cols` entries per claimed row.
+    disp: Vec<(i32, i32)>,
+    flags: Vec<(bool, bool)>,
+    /// Level 0 only.
+    vectors: Vec<FlowVector>,
+}
+
+impl RowsOut {
+    fn clear(&mut self) {
+        self.rows.clear();
+        self.disp.clear();
+        self.flags.clear();
+        self.vectors.clear();
+    }
+
+    /// Writes the claimed rows into the level-wide buffers.
+    fn scatter(&self, cols: usize, disp: &mut [(i32, i32)], flags: &mut [(bool, bool)], vectors: &mut [FlowVector]) {
+        for (k, &r) in self.rows.iter().enumerate() {
+            let (src, dst) = (k * cols..(k + 1) * cols, r * cols..(r + 1) * cols);
+            disp[dst.clone()].copy_from_slice(&self.disp[src.clone()]);
+            flags[dst.clone()].copy_from_slice(&self.flags[src.clone()]);
+            if !self.vectors.is_empty() {
+                vectors[dst].clone_from_slice(&self.vectors[src]);
+            }
+        }
+    }
 }
 
 /// What every block of one pyramid level shares.
@@ -72,6 +107,8 @@ struct LevelJob<'a> {
     origins: &'a [(usize, usize)],
     /// The coarser level's displacements (all blocks).
     prev: &'a [(i32, i32)],
+    /// The edge and ambiguity flags of the coarser levels (all blocks).
+    flags: &'a [(bool, bool)],
     rows: usize,
     cols: usize,
 }
@@ -124,10 +161,12 @@ impl CpuFlow {
             levels,
             scratch: Scratch::default(),
             origins: Vec::new(),
+            origins_size: None,
             disp: Vec::new(),
             prev: Vec::new(),
             flags: Vec::new(),
             bufs: vec![ThreadBufs::default()],
+            sweeps: Sweeps::default(),
             pool: None,
             field: FlowField::default(),
         }
@@ -180,8 +219,10 @@ impl FlowEngine for CpuFlow {
             prefilter::highpass(src_b, p.prefilter_radius, &mut lev.hp_b, &mut self.scratch);
         }
 
-        self.origins.clear();
-        self.origins.extend(super::block_origins(p, w, h));
+        if self.origins_size != Some((w, h)) {
+            self.origins = super::block_origins(p, w, h);
+            self.origins_size = Some((w, h));
+        }
         let n = self.origins.len();
         self.disp.clear();
         self.disp.resize(n, (0, 0));
@@ -194,10 +235,10 @@ impl FlowEngine for CpuFlow {
         self.field.height = h;
         self.field.vectors.clear();
 
-        // Every block row's outputs, for whichever thread claims the row.
         self.field.vectors.resize(n, FlowVector::from_match((0, 0), p.block, (0, 0), (0.0, 0.0), Validity::Valid, 0));
         for l in (0..nlev).rev() {
             self.prev.clone_from(&self.disp);
+            self.sweeps.reset(rows, self.bufs.len());
             let job = LevelJob {
                 params: p,
                 lev: &self.levels[l],
@@ -206,43 +247,32 @@ impl FlowEngine for CpuFlow {
                 kernel: self.kernels[l],
                 origins: &self.origins,
                 prev: &self.prev,
+                flags: &self.flags,
                 rows,
                 cols,
             };
-            let out: Vec<_> = self
-                .disp
-                .chunks_mut(cols)
-                .zip(self.flags.chunks_mut(cols))
-                .zip(self.field.vectors.chunks_mut(cols))
-                .map(|((disp, flags), vectors)| Mutex::new(RowOut { disp, flags, vectors }))
-                .collect();
-            let sweeps = Sweeps::new(rows, self.bufs.len());
+            let sweeps = &self.sweeps;
             match &self.pool {
                 // The first sweep on this thread, the others on the workers.
                 Some(pool) => pool.in_place_scope(|scope| {
                     let mut all = self.bufs.iter_mut().enumerate();
                     let mine = all.next();
                     for (t, bufs) in all {
-                        let (job, out, sweeps) = (&job, &out, &sweeps);
-                        scope.spawn(move |_| sweeps.run(t, job, out, bufs));
+                        let job = &job;
+                        scope.spawn(move |_| sweeps.run(t, job, bufs));
                     }
                     if let Some((t, bufs)) = mine {
-                        sweeps.run(t, &job, &out, bufs);
+                        sweeps.run(t, &job, bufs);
                     }
                 }),
-                None => sweeps.run(0, &job, &out, &mut self.bufs[0]),
+                None => sweeps.run(0, &job, &mut self.bufs[0]),
+            }
+            for bufs in &self.bufs {
+                bufs.out.scatter(cols, &mut self.disp, &mut self.flags, &mut self.field.vectors);
             }
         }
         Ok(&self.field)
     }
-}
-
-/// The outputs of one block row at the level being searched.
-struct RowOut<'a> {
-    disp: &'a mut [(i32, i32)],
-    flags: &'a mut [(bool, bool)],
-    /// Written at level 0 only.
-    vectors: &'a mut [FlowVector],
 }
 
 /// How the block rows of one level are shared among the threads. The rows are cut into
@@ -251,42 +281,77 @@ struct RowOut<'a> {
 /// from sleep when frames come 33 ms apart can take milliseconds) leaves its rows to its partner
 /// instead of making it wait, and each thread takes its predictor from the row it searched
 /// before, so only a segment's first row on each side searches without one.
+#[derive(Debug, Default)]
 struct Sweeps {
     /// Per segment: its first row, its row count, and how many rows were claimed.
     segments: Vec<(usize, usize, AtomicUsize)>,
 }
 
 impl Sweeps {
-    fn new(rows: usize, threads: usize) -> Self {
+    /// Cuts `rows` into segments for `threads` threads, none claimed yet (allocates only when
+    /// the thread count changes).
+    fn reset(&mut self, rows: usize, threads: usize) {
         let count = threads.div_ceil(2).max(1);
+        self.segments.resize_with(count, || (0, 0, AtomicUsize::new(0)));
         let bounds = |k: usize| k * rows / count;
-        Self { segments: (0..count).map(|k| (bounds(k), bounds(k + 1) - bounds(k), AtomicUsize::new(0))).collect() }
+        for (k, (first, len, claimed)) in self.segments.iter_mut().enumerate() {
+            (*first, *len) = (bounds(k), bounds(k + 1) - bounds(k));
+            *claimed.get_mut() = 0;
+        }
     }
 
     /// Thread `t`'s share: the rows it claims in its segment, from its end, until none is left.
-    fn run(&self, t: usize, job: &LevelJob, out: &[Mutex<RowOut>], bufs: &mut ThreadBufs) {
+    fn run(&self, t: usize, job: &LevelJob, bufs: &mut ThreadBufs) {
         let (first, len, claimed) = &self.segments[t / 2];
         let down = t.is_multiple_of(2);
-        let mut adjacent = std::mem::take(&mut bufs.adjacent);
-        adjacent.clear();
+        let cols = job.cols;
+        let ThreadBufs { block_buf, costs, out } = bufs;
+        out.clear();
         for k in 0..*len {
             if claimed.fetch_add(1, Ordering::Relaxed) >= *len {
                 break;
             }
             let r = if down { first + k } else { first + len - 1 - k };
-            let mut row = out[r].lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-            job.run(r, &mut row, (k > 0).then_some(&adjacent[..]), bufs);
-            adjacent.clear();
-            adjacent.extend_from_slice(row.disp);
+            out.rows.push(r);
+            out.flags.extend_from_slice(&job.flags[r * cols..(r + 1) * cols]);
+            let start = out.disp.len();
+            out.disp.resize(start + cols, (0, 0));
+            let (before, row_disp) = out.disp.split_at_mut(start);
+            // The row this thread searched just before is adjacent to this one.
+            let adjacent = (k > 0).then(|| &before[start - cols..]);
+            let row_flags = &mut out.flags[start..];
+            let vectors = if job.l == 0 {
+                out.vectors
+                    .resize(start + cols, FlowVector::from_match((0, 0), 0, (0, 0), (0.0, 0.0), Validity::Valid, 0));
+                Some(&mut out.vectors[start..])
+            } else {
+                None
+            };
+            job.run(r, RowSlices { disp: row_disp, flags: row_flags, vectors }, adjacent, block_buf, costs);
         }
-        bufs.adjacent = adjacent;
     }
+}
+
+/// The outputs of one block row at the level being searched.
+struct RowSlices<'a> {
+    disp: &'a mut [(i32, i32)],
+    /// The coarser levels' flags on entry.
+    flags: &'a mut [(bool, bool)],
+    /// Level 0 only.
+    vectors: Option<&'a mut [FlowVector]>,
 }
 
 impl LevelJob<'_> {
     /// Searches the blocks of row `r` at this level; `adjacent` holds the displacements of the
     /// row above or below, when this thread searched it just before.
-    fn run(&self, r: usize, row: &mut RowOut, adjacent: Option<&[(i32, i32)]>, bufs: &mut ThreadBufs) {
+    fn run(
+        &self,
+        r: usize,
+        row: RowSlices,
+        adjacent: Option<&[(i32, i32)]>,
+        block_buf: &mut Vec<u8>,
+        costs: &mut Vec<u32>,
+    ) {
         let (p, lev, l, cols) = (self.params, self.lev, self.l, self.cols);
         let bs = p.block;
         let (wl, hl) = (lev.hp_a.width(), lev.hp_a.height());
@@ -294,7 +359,8 @@ impl LevelJob<'_> {
         let bl = super::level_block(bs, l);
         let kernel = self.kernel;
         let amb_q8 = p.ambiguity_q8();
-        bufs.block_buf.resize(bs * bs, 0);
+        block_buf.resize(bs * bs, 0);
+        let RowSlices { disp, flags: row_flags, mut vectors } = row;
         for c in 0..cols {
             let i = r * cols + c;
             let (ox, oy) = self.origins[i];
@@ -307,29 +373,29 @@ impl LevelJob<'_> {
                 (2 * m.0, 2 * m.1)
             };
             let win = Window::new(x0, y0, bl, wl, hl, centre, radius);
-            let blk = &mut bufs.block_buf[..bl * bl];
+            let blk = &mut block_buf[..bl * bl];
             copy_block(&lev.hp_a, x0, y0, bl, blk);
             let mut preds = [None; 3];
             preds[0] = Some(win.centre);
             if c > 0 {
-                preds[1] = Some(row.disp[c - 1]);
+                preds[1] = Some(disp[c - 1]);
             }
             if let Some(adjacent) = adjacent {
                 preds[2] = Some(adjacent[c]);
             }
             let query = Query { a: blk, b: &lev.hp_b, x0, y0, block: bl, win, preds, amb_q8 };
-            let found = search(kernel, &query, &mut bufs.costs);
-            row.disp[c] = found.d;
-            let flags = &mut row.flags[c];
+            let found = search(kernel, &query, costs);
+            disp[c] = found.d;
+            let flags = &mut row_flags[c];
             flags.0 |= found.edge;
             flags.1 |= found.ambiguous;
-            if l == 0 {
-                let st = level0_stats(kernel, &bufs.block_buf, &lev.hp_b, x0, y0, bs, &win, found.d);
+            if let Some(vectors) = vectors.as_deref_mut() {
+                let st = level0_stats(kernel, block_buf, &lev.hp_b, x0, y0, bs, &win, found.d);
                 let textureless = 16 * st.texture < p.min_texture_q4() * (2 * bs * (bs - 1)) as u64;
                 let [xm, xp, ym, yp] = st.ssd_neighbours;
                 let sub = (parabola(xm, st.ssd, xp), parabola(ym, st.ssd, yp));
                 let validity = Validity::of(textureless, flags.0, flags.1);
-                row.vectors[c] = FlowVector::from_match((ox, oy), bs, found.d, sub, validity, found.cost);
+                vectors[c] = FlowVector::from_match((ox, oy), bs, found.d, sub, validity, found.cost);
             }
         }
     }
