@@ -38,9 +38,9 @@
 #
 # What it runs:
 #   1. the flow_gpu test binary, --test-threads 8 (parity of both GPU paths with the CPU engine,
-#      bit-identical; it prints the adapter the tests ran on), once as built and once per
-#      FLOWNAV_GPU_MATCH_WG in $CHECK_WGS (other workgroup sizes of the per-block kernel; default
-#      "256 1024").
+#      bit-identical; it prints the adapter the tests ran on), once as built and once under each
+#      setting in $CHECK_ENVS (environment assignments, several separated by spaces, settings by
+#      ';'; default: the per-block kernel at 256 and 1024 invocations per workgroup).
 #      `cli_gpu_backend_runs_or_names_what_to_install` is skipped: it runs the `flownav` binary at
 #      the absolute path baked in at build time, which does not exist there.
 #   2. the benchmark (criterion, short: warm-up 1 s, measurement 2 s), groups
@@ -50,10 +50,12 @@
 #      the mean GPU time of each compute pass over 50 more pairs ("pass times") and, in builds
 #      that have it, the host's split of a waiting `compute` ("host split": submission, then the
 #      wait and readback).
-#   3. this build's default grid again under each setting in $VARIANTS (environment
-#      assignments separated by ';'; default: the blocking wait, and 256 and 1024 invocations
-#      per workgroup of the per-block kernel, docs/gpu.md), to see what each part is worth on
-#      this card. VARIANTS= skips them.
+#   3. this build's default grid again under each setting in $VARIANTS (as $CHECK_ENVS;
+#      default: the blocking wait, and 256 and 1024 invocations per workgroup of the per-block
+#      kernel, docs/gpu.md), to see what each part is worth on this card; VARIANTS= skips them.
+#      $VARIANT_FILTER picks other benchmarks for them (a criterion filter, e.g.
+#      'flow_gpu_720p/gpu/dense$' with the cost-volume settings FLOWNAV_GPU_CV_UNROLL and
+#      FLOWNAV_GPU_CV_SWAR, docs/gpu.md).
 #   4. `flownav flow A B --repeat 300 --flow-backend gpu --json` on data/graf_shift_512 and
 #      data/motorcycle_stereo, baseline first: the `timing` object (wall time per pair of a
 #      waiting `compute`, min/median/p90 ms).
@@ -68,8 +70,9 @@ mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
 export FLOWNAV_DATA=${FLOWNAV_DATA:-$PWD/data}
 export RUST_BACKTRACE=1
 export CRITERION_HOME=${CRITERION_HOME:-/tmp/flownav-criterion}
-CHECK_WGS=${CHECK_WGS-"256 1024"}
+CHECK_ENVS=${CHECK_ENVS-"FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024"}
 VARIANTS=${VARIANTS-"FLOWNAV_GPU_WAIT=block;FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024"}
+VARIANT_FILTER=${VARIANT_FILTER-'flow_gpu_720p/gpu(_stream_wait|_stream)?/default$'}
 status=0
 
 log() { echo "== $*" | tee -a "$OUTDIR/summary.txt"; }
@@ -80,18 +83,30 @@ log "$(date -u +%FT%TZ) device check in $PWD, binaries in $BIN${BASE:+, baseline
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader \
     | tee -a "$OUTDIR/summary.txt"
 
-# 1. parity tests, as built and with other workgroup sizes of the per-block kernel
-for wg in default $CHECK_WGS; do
-    if [ "$wg" = default ]; then sw="-u FLOWNAV_GPU_MATCH_WG"; else sw="FLOWNAV_GPU_MATCH_WG=$wg"; fi
-    # shellcheck disable=SC2086
-    env $sw timeout 60 "$BIN/flow_gpu_test" --test-threads 8 --nocapture --skip cli_gpu_backend_runs_or_names_what_to_install \
-        >"$OUTDIR/tests_$wg.txt" 2>&1
+# 1. parity tests, as built and under each setting of CHECK_ENVS
+parity() { # NAME [ASSIGNMENT...]
+    name=$1
+    shift
+    env -u FLOWNAV_GPU_MATCH_WG -u FLOWNAV_GPU_CV_UNROLL -u FLOWNAV_GPU_CV_SWAR "$@" timeout 60 \
+        "$BIN/flow_gpu_test" --test-threads 8 --nocapture --skip cli_gpu_backend_runs_or_names_what_to_install \
+        >"$OUTDIR/tests_$name.txt" 2>&1
     rc=$?
-    log "flow_gpu tests (env $sw): exit $rc ($(grep -E '^test result' "$OUTDIR/tests_$wg.txt" | tail -1))"
-    grep -E '^GPU flow tests on|SKIPPED|FAILED|panicked' "$OUTDIR/tests_$wg.txt" | sort | uniq -c | head -20 \
+    log "flow_gpu tests (env $*): exit $rc ($(grep -E '^test result' "$OUTDIR/tests_$name.txt" | tail -1))"
+    grep -E '^GPU flow tests on|SKIPPED|FAILED|panicked' "$OUTDIR/tests_$name.txt" | sort | uniq -c | head -20 \
         | tee -a "$OUTDIR/summary.txt"
     [ "$rc" = 0 ] || status=1
+}
+parity default
+i=0
+oldifs=$IFS
+IFS=';'
+for v in $CHECK_ENVS; do
+    IFS=$oldifs
+    i=$((i + 1))
+    # shellcheck disable=SC2086 # several assignments in one setting
+    [ -n "$v" ] && parity "env$i" $v
 done
+IFS=$oldifs
 
 # 2. benchmarks: baseline, then this build
 FILTER='flow_gpu_720p/gpu(_stream_wait|_stream)?/(default|dense)$'
@@ -118,7 +133,8 @@ for v in $VARIANTS; do
     IFS=$oldifs
     [ -n "$v" ] || continue
     i=$((i + 1))
-    bench "variant$i" "$BIN/flow_gpu_bench" 'flow_gpu_720p/gpu(_stream_wait|_stream)?/default$' "$v"
+    # shellcheck disable=SC2086 # several assignments in one setting
+    bench "variant$i" "$BIN/flow_gpu_bench" "$VARIANT_FILTER" $v
 done
 IFS=$oldifs
 
