@@ -78,51 +78,6 @@ fn word_b(i: u32) -> u32 {
     return 0u;
 }
 
-// One phase-1 walk: its tile region's first row, the word column of A and B, the funnel
-// shifts, which of the two words exist, and the candidate row.
-struct Walk {
-    y0t: u32,
-    awx: u32,
-    ash: u32,
-    a0: bool,
-    a1: bool,
-    bwx: i32,
-    bsh: u32,
-    b0: bool,
-    b1: bool,
-    dy: i32,
-}
-
-// The packed 4 pixels of A at region row y of the walk and of B at that row + dy (0 outside
-// the frame).
-fn row_words(w: Walk, y: u32) -> vec2<u32> {
-    let ay = w.y0t + y;
-    var alo = 0u;
-    var ahi = 0u;
-    if ay < lv.h {
-        let ai = ay * lv.ws + w.awx;
-        if w.a0 {
-            alo = word_a(ai);
-        }
-        if w.a1 {
-            ahi = word_a(ai + 1u);
-        }
-    }
-    let by = i32(ay) + w.dy;
-    var blo = 0u;
-    var bhi = 0u;
-    if by >= 0 && by < i32(lv.h) {
-        let bi = u32(by * i32(lv.ws) + w.bwx);
-        if w.b0 {
-            blo = word_b(bi);
-        }
-        if w.b1 {
-            bhi = word_b(bi + 1u);
-        }
-    }
-    return vec2<u32>(funnel(alo, ahi, w.ash), funnel(blo, bhi, w.bsh));
-}
-
 // |a − b| of each of the 4 bytes of two packed words, in place (SIMD within the register):
 // bit 7 of `ge` says a ≥ b per byte, from the top bits and a borrow-free subtraction of the low
 // seven; then max − min per byte, which cannot borrow across bytes.
@@ -136,20 +91,20 @@ fn absdiff_bytes(a: u32, b: u32) -> u32 {
     return (b ^ xm) - (a ^ xm);
 }
 
-// One row's absolute differences for the 4 columns of a walk (`ab`: A's and B's words). With
-// quad sums (QS) only their total is used, so SWAR adds the 4 in place and returns the total
-// in x: 1 by a packed dot product, 2 by shifts and masks; 0 unpacks the 4 columns.
-fn row_cost(ab: vec2<u32>) -> vec4<u32> {
+// One row's absolute differences for the 4 columns of a walk (`aw`, `bw`: A's and B's words).
+// With quad sums (QS) only their total is used, so SWAR adds the 4 in place and returns the
+// total in x: 1 by a packed dot product, 2 by shifts and masks; 0 unpacks the 4 columns.
+fn row_cost(aw: u32, bw: u32) -> vec4<u32> {
     if QS && SWAR == 1u {
-        return vec4<u32>(dot4U8Packed(absdiff_bytes(ab.x, ab.y), 0x01010101u), 0u, 0u, 0u);
+        return vec4<u32>(dot4U8Packed(absdiff_bytes(aw, bw), 0x01010101u), 0u, 0u, 0u);
     }
     if QS && SWAR == 2u {
-        let d = absdiff_bytes(ab.x, ab.y);
+        let d = absdiff_bytes(aw, bw);
         let p = (d & 0x00ff00ffu) + ((d >> 8u) & 0x00ff00ffu);
         return vec4<u32>((p & 0xffffu) + (p >> 16u), 0u, 0u, 0u);
     }
-    let a = unpack(ab.x);
-    let b = unpack(ab.y);
+    let a = unpack(aw);
+    let b = unpack(bw);
     return max(a, b) - min(a, b);
 }
 
@@ -188,27 +143,51 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 let bsh = u32(bx & 3) * 8u;
                 let b0 = bwx >= 0 && bwx < ws;
                 let b1 = bsh != 0u && bwx + 1 >= 0 && bwx + 1 < ws;
-                let walk = Walk(y0t, awx, ash, a0, a1, bwx, bsh, b0, b1, dy);
                 var s = vec4<u32>(0u);
                 var y = 0u;
                 for (var e = 0u; e < nev; e++) {
                     let ev = tile(rb + 4u + e);
                     let ye = min(ev >> 12u, rh);
-                    // UNROLL rows at a time, their loads first: the walk is a chain of
-                    // dependent row steps, and each step's loads would otherwise wait alone.
-                    while y + UNROLL <= ye {
-                        var ab: array<vec2<u32>, UNROLL>;
-                        for (var k = 0u; k < UNROLL; k++) {
-                            ab[k] = row_words(walk, y + k);
-                        }
-                        for (var k = 0u; k < UNROLL; k++) {
-                            s += row_cost(ab[k]);
-                        }
-                        y += UNROLL;
-                    }
+                    // UNROLL rows per step, all their loads first: the walk is a chain of row
+                    // steps, and a step's loads would otherwise wait alone. Rows past ye load
+                    // nothing, and two zero words add no difference.
                     while y < ye {
-                        s += row_cost(row_words(walk, y));
-                        y++;
+                        var aws: array<u32, UNROLL>;
+                        var bws: array<u32, UNROLL>;
+                        for (var k = 0u; k < UNROLL; k++) {
+                            let ay = y0t + y + k;
+                            var alo = 0u;
+                            var ahi = 0u;
+                            var blo = 0u;
+                            var bhi = 0u;
+                            if y + k < ye {
+                                if ay < lv.h {
+                                    let ai = ay * lv.ws + awx;
+                                    if a0 {
+                                        alo = word_a(ai);
+                                    }
+                                    if a1 {
+                                        ahi = word_a(ai + 1u);
+                                    }
+                                }
+                                let by = i32(ay) + dy;
+                                if by >= 0 && by < i32(lv.h) {
+                                    let bi = u32(by * ws + bwx);
+                                    if b0 {
+                                        blo = word_b(bi);
+                                    }
+                                    if b1 {
+                                        bhi = word_b(bi + 1u);
+                                    }
+                                }
+                            }
+                            aws[k] = funnel(alo, ahi, ash);
+                            bws[k] = funnel(blo, bhi, bsh);
+                        }
+                        for (var k = 0u; k < UNROLL; k++) {
+                            s += row_cost(aws[k], bws[k]);
+                        }
+                        y = min(y + UNROLL, ye);
                     }
                     let r = (ev >> 1u) & 2047u;
                     if QS {
