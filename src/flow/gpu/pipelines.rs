@@ -93,7 +93,7 @@ impl CostVolShape {
             cst = CV_CST,
             rst = cv_rst(self.tr),
             rowbase = self.rowbase,
-            unroll = cv_variant("FLOWNAV_GPU_CV_UNROLL", 1, 1..=16),
+            unroll = cv_variant("FLOWNAV_GPU_CV_UNROLL", 1, 1..=4),
             swar = cv_variant("FLOWNAV_GPU_CV_SWAR", 0, 0..=2),
             common = COMMON_WGSL,
             body = COSTVOL_WGSL,
