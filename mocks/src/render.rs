@@ -122,12 +122,6 @@ impl Surface {
         // left to right, so precomputing them leaves every grey level as it was
         Self { kind, bright: 255.0 * albedo, contrast2: contrast * 2.0, offset, detailed: kind.is_obstacle() }
     }
-
-    /// The grey level of texture value `t` lit by `gain` (`bright · shade`).
-    #[inline(always)]
-    fn grey(&self, gain: f32, t: f32) -> f32 {
-        gain * (1.0 + self.contrast2 * (t - 0.5))
-    }
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -219,6 +213,8 @@ pub struct Renderer {
     surfaces: Vec<Surface>,
     ceiling: Option<f64>,
     tex: &'static Texture,
+    /// Shade and expose eight pixels at once (x86-64 with AVX2, detected at run time).
+    simd: bool,
     /// Lens distortion to simulate; `None` for a pinhole.
     lens: Option<Lens>,
 }
@@ -253,12 +249,75 @@ impl Grey for f32 {
     }
 }
 
-/// One pixel's hit.
-#[derive(Clone, Copy, Debug)]
-struct Hit {
-    depth: f64,
-    surface: u32,
-    value: f32,
+/// Pixels of a row traced together: the ray pass writes a run's hits, the shading pass
+/// textures them eight at a time.
+const RUN: usize = 64;
+
+/// The hits of up to [`RUN`] consecutive pixels of a row: what the ray met and what shading it
+/// needs (structure of arrays, so that the shading pass loads eight pixels at once), then the
+/// grey values.
+struct Run {
+    /// Metres along the optical axis, infinite for sky.
+    depth: [f64; RUN],
+    /// Index into `Renderer::surfaces`, `u32::MAX` for sky.
+    surface: [u32; RUN],
+    /// The ray's squared length and the footprint's denominator (see `Span::fx_cos`).
+    dir2: [f64; RUN],
+    fx_cos: [f64; RUN],
+    /// Texture coordinates with the surface's offset, m.
+    tu: [f32; RUN],
+    tv: [f32; RUN],
+    /// `bright · shade` where the surface is hit, and the surface's `contrast2`.
+    gain: [f32; RUN],
+    contrast2: [f32; RUN],
+    /// All bits set where the surface takes [`Texture::sample_detailed`] (a lane mask).
+    detailed: [u32; RUN],
+    /// Grey levels (0 without texture, [`SKY`] for sky).
+    value: [f32; RUN],
+}
+
+impl Run {
+    fn new() -> Self {
+        Self {
+            depth: [0.0; RUN],
+            surface: [0; RUN],
+            dir2: [0.0; RUN],
+            fx_cos: [0.0; RUN],
+            tu: [0.0; RUN],
+            tv: [0.0; RUN],
+            gain: [0.0; RUN],
+            contrast2: [0.0; RUN],
+            detailed: [0; RUN],
+            value: [0.0; RUN],
+        }
+    }
+
+    /// Pixel `i` sees sky; its shading inputs are ones the texture pass handles without a
+    /// special case (an infinite footprint takes the coarsest level).
+    #[inline(always)]
+    fn sky(&mut self, i: usize) {
+        self.depth[i] = f64::INFINITY;
+        self.surface[i] = u32::MAX;
+        self.dir2[i] = 1.0;
+        self.fx_cos[i] = 1.0;
+        self.tu[i] = 0.0;
+        self.tv[i] = 0.0;
+        self.gain[i] = 0.0;
+        self.contrast2[i] = 0.0;
+        self.detailed[i] = 0;
+    }
+}
+
+/// Whether the eight-lane shading and exposure can run here.
+fn simd_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
 }
 
 impl Renderer {
@@ -344,6 +403,7 @@ impl Renderer {
             surfaces,
             ceiling: world.ceiling_height,
             tex: texture::shared(),
+            simd: simd_available(),
             lens: None,
         }
     }
@@ -406,7 +466,10 @@ impl Renderer {
             // applied as each row is traced, without a buffer of values in between
             let view = self.view(from.lerp(&pose, 1.0));
             out.data_mut().par_chunks_mut(w).enumerate().with_min_len(4).for_each(|(v, dst)| {
-                self.trace_row(&view, v, true, |u, h| dst[u] = expose(h.value, gain, offset, sigma, seed, v * w + u));
+                self.trace_row(&view, v, true, |u, run, n| {
+                    let noise = Noise { gain, offset, sigma, seed, first: v * w + u };
+                    self.expose_run(&run.value[..n], &mut dst[u..u + n], &noise);
+                });
             });
             return;
         }
@@ -435,9 +498,11 @@ impl Renderer {
         let view = self.view(pose);
         acc.par_chunks_mut(self.width).enumerate().with_min_len(4).for_each(|(v, row)| {
             if add {
-                self.trace_row(&view, v, true, |u, h| row[u] += h.value);
+                self.trace_row(&view, v, true, |u, run, n| {
+                    row[u..u + n].iter_mut().zip(&run.value).for_each(|(a, &x)| *a += x)
+                });
             } else {
-                self.trace_row(&view, v, true, |u, h| row[u] = h.value);
+                self.trace_row(&view, v, true, |u, run, n| row[u..u + n].copy_from_slice(&run.value[..n]));
             }
         });
     }
@@ -467,15 +532,15 @@ impl Renderer {
         let grey = img_rows.first().is_some_and(Option::is_some);
         img_rows.into_par_iter().zip(depth_rows).zip(id_rows).enumerate().with_min_len(4).for_each(
             |(v, ((mut img, mut depth), mut ids))| {
-                self.trace_row(&view, v, grey, |u, h| {
+                self.trace_row(&view, v, grey, |u, run, n| {
                     if let Some(r) = img.as_deref_mut() {
-                        r[u] = G::from_value(h.value);
+                        r[u..u + n].iter_mut().zip(&run.value).for_each(|(o, &x)| *o = G::from_value(x));
                     }
                     if let Some(r) = depth.as_deref_mut() {
-                        r[u] = h.depth as f32;
+                        r[u..u + n].iter_mut().zip(&run.depth).for_each(|(o, &x)| *o = x as f32);
                     }
                     if let Some(r) = ids.as_deref_mut() {
-                        r[u] = h.surface;
+                        r[u..u + n].copy_from_slice(&run.surface[..n]);
                     }
                 })
             },
@@ -546,10 +611,12 @@ impl Renderer {
         }
     }
 
-    /// Traces row `v` of `view`, handing each pixel's hit to `put` with its column; without
-    /// `grey` the hits' values are left 0 (no texture is sampled).
+    /// Traces row `v` of `view` in runs of up to [`RUN`] pixels, handing each run to `put` with
+    /// its first column and length; without `grey` the values are left 0 (no texture is
+    /// sampled), sky's [`SKY`].
     #[inline(always)]
-    fn trace_row(&self, view: &View, v: usize, grey: bool, mut put: impl FnMut(usize, Hit)) {
+    fn trace_row(&self, view: &View, v: usize, grey: bool, mut put: impl FnMut(usize, &Run, usize)) {
+        let mut run = Run::new();
         match view {
             View::Level { cam, columns, spans, counts } => {
                 let (_, dz) = cam.direction(0.0, self.yn[v]);
@@ -563,9 +630,8 @@ impl Renderer {
                     base = Target::Ceiling;
                 }
                 let flat = Flat::of(self, dz);
-                for (u, (col, (spans, &count))) in
-                    columns.iter().zip(spans.chunks_exact(MAX_SPANS).zip(counts)).enumerate()
-                {
+                let columns = columns.iter().zip(spans.chunks_exact(MAX_SPANS).zip(counts));
+                self.runs(&mut run, grey, &mut put, columns, |run, i, (col, (spans, &count))| {
                     let (mut best, mut what) = (best0, base);
                     for s in &spans[..count as usize] {
                         if s.s_in >= best {
@@ -574,19 +640,70 @@ impl Renderer {
                         consider(s, zc, dz, &mut best, &mut what);
                     }
                     let ray = Ray { dh: col.dh, dz, dir2: col.dh2 + flat.dz2, flat_fx_cos: flat.fx_cos };
-                    put(u, self.shade(cam, &ray, best, what, grey));
-                }
+                    self.prepare(cam, &ray, best, what, run, i);
+                });
             }
             View::Pitched { cam, candidates } => {
-                for (u, candidates) in candidates.iter().enumerate() {
-                    put(u, self.pitched_pixel(cam, candidates, u, v, grey));
-                }
+                self.runs(&mut run, grey, &mut put, candidates.iter().enumerate(), |run, i, (u, candidates)| {
+                    self.pitched_pixel(cam, candidates, u, v, run, i)
+                });
             }
         }
     }
 
-    /// The nearest hit of pixel (u, v) of a pitched camera, from the solids in its column's wedge.
-    fn pitched_pixel(&self, cam: &CameraPose, candidates: &[u32], u: usize, v: usize, grey: bool) -> Hit {
+    /// Feeds the pixels of a row (`pixels`, one item per column) to `trace`, which writes each
+    /// one's hit into the run at its index; shades each full run (or the row's last) and hands
+    /// it to `put`.
+    #[inline(always)]
+    fn runs<P>(
+        &self,
+        run: &mut Run,
+        grey: bool,
+        put: &mut impl FnMut(usize, &Run, usize),
+        pixels: impl Iterator<Item = P>,
+        mut trace: impl FnMut(&mut Run, usize, P),
+    ) {
+        let mut start = 0;
+        let mut n = 0;
+        for p in pixels {
+            trace(run, n, p);
+            n += 1;
+            if n == RUN {
+                self.finish_run(run, grey, n);
+                put(start, run, n);
+                start += n;
+                n = 0;
+            }
+        }
+        if n > 0 {
+            self.finish_run(run, grey, n);
+            put(start, run, n);
+        }
+    }
+
+    /// The grey values of the first `n` hits of `run` (0 without `grey`, sky's [`SKY`]).
+    #[inline(always)]
+    fn finish_run(&self, run: &mut Run, grey: bool, n: usize) {
+        if !grey {
+            for i in 0..n {
+                run.value[i] = if run.surface[i] == u32::MAX { SKY } else { 0.0 };
+            }
+            return;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if self.simd {
+            // SAFETY: `simd` is set only where AVX2 was detected.
+            unsafe { self.shade_avx2(run, n) };
+            return;
+        }
+        for i in 0..n {
+            run.value[i] = self.shade(run, i);
+        }
+    }
+
+    /// The nearest hit of pixel (u, v) of a pitched camera, from the solids in its column's
+    /// wedge, written into `run` at `i`.
+    fn pitched_pixel(&self, cam: &CameraPose, candidates: &[u32], u: usize, v: usize, run: &mut Run, i: usize) {
         let (dh, dz) = cam.direction(self.xn[u], self.yn[v]);
         let zc = cam.position[2];
         let (mut best, mut what) = (f64::INFINITY, Target::Sky);
@@ -599,8 +716,8 @@ impl Renderer {
         }
         // the span whose side is the nearest hit so far (spans are computed per pixel here)
         let mut side: Option<Span> = None;
-        for &i in candidates {
-            if let Some(s) = self.span(&self.prims[i as usize], cam, dh)
+        for &c in candidates {
+            if let Some(s) = self.span(&self.prims[c as usize], cam, dh)
                 && s.s_in < best
             {
                 let mut got = Target::Sky;
@@ -617,40 +734,128 @@ impl Renderer {
         }
         let what = side.as_ref().map_or(what, Target::Side);
         let ray = Ray { dh, dz, dir2: dh[0] * dh[0] + dh[1] * dh[1] + dz * dz, flat_fx_cos: Flat::of(self, dz).fx_cos };
-        self.shade(cam, &ray, best, what, grey)
+        self.prepare(cam, &ray, best, what, run, i);
     }
 
-    /// The grey level of a hit at `ray`'s parameter `s` (its depth); without `grey`, only the
-    /// depth and the surface.
+    /// Writes into `run` at `i` a hit at `ray`'s parameter `s` (its depth) on `what`: the
+    /// surface, and what its texture sample and grey level need.
     #[inline(always)]
-    fn shade(&self, cam: &CameraPose, ray: &Ray, s: f64, what: Target, grey: bool) -> Hit {
+    fn prepare(&self, cam: &CameraPose, ray: &Ray, s: f64, what: Target, run: &mut Run, i: usize) {
         let Ray { dh, dz, dir2, flat_fx_cos } = *ray;
         let at = |s: f64| [cam.position[0] + s * dh[0], cam.position[1] + s * dh[1]];
-        // texture coordinates before the surface's offset: (f64, f64), or a side's u with it
-        let (surface, tex, fx_cos) = match what {
-            Target::Sky => return Hit { depth: f64::INFINITY, surface: u32::MAX, value: SKY },
-            Target::Floor => (0u32, Tex::Flat(at(s)), flat_fx_cos),
-            Target::Ceiling => (1u32, Tex::Flat(at(s)), flat_fx_cos),
-            Target::Top(surface) => {
-                let p = at(s);
-                (surface, Tex::Top([p[0] + 3.7, p[1] + 1.9]), flat_fx_cos)
+        let (surface, tu, tv, gain, fx_cos) = match what {
+            Target::Sky => {
+                run.sky(i);
+                return;
             }
-            Target::Side(sp) => (sp.surface, Tex::Side(sp.tu, cam.position[2] + s * dz, sp.gain), sp.fx_cos),
+            Target::Floor | Target::Ceiling => {
+                let surface = if matches!(what, Target::Floor) { 0 } else { 1 };
+                let (sf, p) = (&self.surfaces[surface as usize], at(s));
+                (surface, p[0] as f32 + sf.offset[0], p[1] as f32 + sf.offset[1], sf.bright, flat_fx_cos)
+            }
+            Target::Top(surface) => {
+                let (sf, p) = (&self.surfaces[surface as usize], at(s));
+                let (tu, tv) = ((p[0] + 3.7) as f32 + sf.offset[0], (p[1] + 1.9) as f32 + sf.offset[1]);
+                // the tops of boxes are lit 1.12 times
+                (surface, tu, tv, sf.bright * 1.12, flat_fx_cos)
+            }
+            Target::Side(sp) => {
+                let sf = &self.surfaces[sp.surface as usize];
+                (sp.surface, sp.tu, (cam.position[2] + s * dz) as f32 + sf.offset[1], sp.gain, sp.fx_cos)
+            }
         };
-        if !grey {
-            return Hit { depth: s, surface, value: 0.0 };
-        }
         let sf = &self.surfaces[surface as usize];
+        run.depth[i] = s;
+        run.surface[i] = surface;
+        run.dir2[i] = dir2;
+        run.fx_cos[i] = fx_cos;
+        run.tu[i] = tu;
+        run.tv[i] = tv;
+        run.gain[i] = gain;
+        run.contrast2[i] = sf.contrast2;
+        run.detailed[i] = if sf.detailed { u32::MAX } else { 0 };
+    }
+
+    /// The grey level of hit `i` of `run`: the texture sampled with the pixel's footprint on
+    /// the surface, scaled by the surface's gain and contrast.
+    #[inline(always)]
+    fn shade(&self, run: &Run, i: usize) -> f32 {
+        if run.surface[i] == u32::MAX {
+            return SKY;
+        }
+        let (s, dir2, fx_cos) = (run.depth[i], run.dir2[i], run.fx_cos[i]);
         let footprint = (s * dir2 / (fx_cos * dir2.sqrt())) as f32;
-        let (tu, tv, gain) = match tex {
-            Tex::Flat(p) => (p[0] as f32 + sf.offset[0], p[1] as f32 + sf.offset[1], sf.bright),
-            // the tops of boxes are lit 1.12 times
-            Tex::Top(p) => (p[0] as f32 + sf.offset[0], p[1] as f32 + sf.offset[1], sf.bright * 1.12),
-            Tex::Side(tu, z, gain) => (tu, z as f32 + sf.offset[1], gain),
+        let (tu, tv) = (run.tu[i], run.tv[i]);
+        let t = if run.detailed[i] != 0 {
+            self.tex.sample_detailed(tu, tv, footprint)
+        } else {
+            self.tex.sample(tu, tv, footprint)
         };
-        let t =
-            if sf.detailed { self.tex.sample_detailed(tu, tv, footprint) } else { self.tex.sample(tu, tv, footprint) };
-        Hit { depth: s, surface, value: sf.grey(gain, t) }
+        run.gain[i] * (1.0 + run.contrast2[i] * (t - 0.5))
+    }
+
+    /// [`Renderer::shade`] of the first `n` hits of `run`, eight at a time: the same IEEE
+    /// operations in the same order per lane, so every value is bit for bit the scalar one.
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn shade_avx2(&self, run: &mut Run, n: usize) {
+        use std::arch::x86_64::*;
+        let end = n.next_multiple_of(8);
+        // the lanes past the row's end are shaded as sky and not handed out
+        for i in n..end {
+            run.sky(i);
+        }
+        for g in (0..end).step_by(8) {
+            // SAFETY: AVX2 is available (the caller's contract); every load and store is of
+            // eight elements from `g`, and `g + 8 ≤ end ≤ RUN` (RUN is a multiple of 8).
+            unsafe {
+                let footprint = |k: usize| {
+                    let s = _mm256_loadu_pd(run.depth.as_ptr().add(g + k));
+                    let dir2 = _mm256_loadu_pd(run.dir2.as_ptr().add(g + k));
+                    let fx_cos = _mm256_loadu_pd(run.fx_cos.as_ptr().add(g + k));
+                    _mm256_cvtpd_ps(_mm256_div_pd(_mm256_mul_pd(s, dir2), _mm256_mul_pd(fx_cos, _mm256_sqrt_pd(dir2))))
+                };
+                let footprint = _mm256_set_m128(footprint(4), footprint(0));
+                let tu = _mm256_loadu_ps(run.tu.as_ptr().add(g));
+                let tv = _mm256_loadu_ps(run.tv.as_ptr().add(g));
+                let detailed = _mm256_loadu_ps(run.detailed.as_ptr().add(g) as *const f32);
+                let mut bad = _mm256_setzero_ps();
+                let t = texture::avx2::sample(self.tex, tu, tv, footprint, detailed, &mut bad);
+                let gain = _mm256_loadu_ps(run.gain.as_ptr().add(g));
+                let contrast2 = _mm256_loadu_ps(run.contrast2.as_ptr().add(g));
+                let one = _mm256_set1_ps(1.0);
+                let value = _mm256_mul_ps(
+                    gain,
+                    _mm256_add_ps(one, _mm256_mul_ps(contrast2, _mm256_sub_ps(t, _mm256_set1_ps(0.5)))),
+                );
+                let surface = _mm256_loadu_si256(run.surface.as_ptr().add(g) as *const __m256i);
+                let sky = _mm256_castsi256_ps(_mm256_cmpeq_epi32(surface, _mm256_set1_epi32(-1)));
+                _mm256_storeu_ps(run.value.as_mut_ptr().add(g), _mm256_blendv_ps(value, _mm256_set1_ps(SKY), sky));
+                if _mm256_movemask_ps(bad) != 0 {
+                    for i in g..g + 8 {
+                        run.value[i] = self.shade(run, i);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Exposure, sensor noise and rounding ([`expose`]) of a run of values into `out`.
+    #[inline(always)]
+    fn expose_run(&self, values: &[f32], out: &mut [u8], noise: &Noise) {
+        let mut done = 0;
+        #[cfg(target_arch = "x86_64")]
+        if self.simd && noise.first + values.len() <= u32::MAX as usize {
+            // SAFETY: `simd` is set only where AVX2 was detected; the pixel indices fit 32 bits.
+            done = unsafe { expose_avx2(values, out, noise) };
+        }
+        let Noise { gain, offset, sigma, seed, first } = *noise;
+        for (k, (o, &x)) in out.iter_mut().zip(values).enumerate().skip(done) {
+            *o = expose(x, gain, offset, sigma, seed, first + k);
+        }
     }
 
     /// Where the horizontal ray from the camera along `dh` meets `prim`, if it does ahead.
@@ -771,6 +976,109 @@ fn expose(s: f32, gain: f32, offset: f32, sigma: f32, seed: u64, i: usize) -> u8
         v += sigma * gaussian(seed ^ (i as u64).wrapping_mul(0x9E37_79B9));
     }
     (v + 0.5).clamp(0.0, 255.0) as u8
+}
+
+/// What [`expose`] takes besides a value: exposure, noise, and the row-major index of a run's
+/// first pixel.
+#[derive(Clone, Copy)]
+struct Noise {
+    gain: f32,
+    offset: f32,
+    sigma: f32,
+    seed: u64,
+    first: usize,
+}
+
+/// [`expose`] of the values of `values` eight at a time into `out`, bit for bit (the hash in
+/// 64-bit lanes, the same float operations per lane); returns how many it wrote (a multiple of
+/// eight, the rest is the caller's).
+///
+/// # Safety
+/// AVX2 must be available; `noise.first + values.len()` fits 32 bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn expose_avx2(values: &[f32], out: &mut [u8], noise: &Noise) -> usize {
+    use std::arch::x86_64::*;
+    let n = values.len().min(out.len()) / 8 * 8;
+    let (gain, offset, sigma) = (_mm256_set1_ps(noise.gain), _mm256_set1_ps(noise.offset), _mm256_set1_ps(noise.sigma));
+    let seed = _mm256_set1_epi64x(noise.seed as i64);
+    let golden = _mm256_set1_epi64x(0x9E37_79B9);
+    let sqrt3 = _mm256_set1_ps(3.0f32.sqrt());
+    for g in (0..n).step_by(8) {
+        // SAFETY: AVX2 is available (the caller's contract); eight values are read from `g`
+        // and eight bytes written there, `g + 8 ≤ n` within both slices.
+        unsafe {
+            let mut v = _mm256_add_ps(_mm256_mul_ps(_mm256_loadu_ps(values.as_ptr().add(g)), gain), offset);
+            if noise.sigma > 0.0 {
+                let i = (noise.first + g) as i64;
+                // `(i as u64).wrapping_mul(0x9E37_79B9)`: exact as a 32 × 32 → 64-bit product
+                // while the index fits 32 bits
+                let key = |i: i64| {
+                    let index = _mm256_set_epi64x(i + 3, i + 2, i + 1, i);
+                    gaussian_sums(_mm256_xor_si256(seed, _mm256_mul_epu32(index, golden)))
+                };
+                let sums = _mm256_set_m128i(key(i + 4), key(i));
+                let g = _mm256_mul_ps(
+                    _mm256_sub_ps(
+                        _mm256_div_ps(_mm256_cvtepi32_ps(sums), _mm256_set1_ps(65535.0)),
+                        _mm256_set1_ps(2.0),
+                    ),
+                    sqrt3,
+                );
+                v = _mm256_add_ps(v, _mm256_mul_ps(sigma, g));
+            }
+            // `maxps` returns its second operand for a NaN first one: NaN becomes 0, as the
+            // saturating `as u8` makes it
+            let v = _mm256_min_ps(
+                _mm256_max_ps(_mm256_add_ps(v, _mm256_set1_ps(0.5)), _mm256_setzero_ps()),
+                _mm256_set1_ps(255.0),
+            );
+            let v = _mm256_cvttps_epi32(v);
+            let words = _mm_packus_epi32(_mm256_castsi256_si128(v), _mm256_extracti128_si256::<1>(v));
+            _mm_storel_epi64(out.as_mut_ptr().add(g) as *mut __m128i, _mm_packus_epi16(words, words));
+        }
+    }
+    n
+}
+
+/// The four 16-bit fields of `mix64(key)` summed ([`gaussian`] before scaling), for four keys:
+/// the sums (below 2¹⁸) as four 32-bit integers.
+///
+/// # Safety
+/// AVX2 must be available.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn gaussian_sums(key: std::arch::x86_64::__m256i) -> std::arch::x86_64::__m128i {
+    use std::arch::x86_64::*;
+    // SAFETY (whole body): the caller guarantees AVX2.
+    unsafe {
+        let z = mul64(_mm256_xor_si256(key, _mm256_srli_epi64::<30>(key)), 0xBF58_476D_1CE4_E5B9);
+        let z = mul64(_mm256_xor_si256(z, _mm256_srli_epi64::<27>(z)), 0x94D0_49BB_1331_11EB);
+        let h = _mm256_xor_si256(z, _mm256_srli_epi64::<31>(z));
+        let fields = _mm256_set1_epi64x(0x0000_ffff_0000_ffff);
+        let pairs = _mm256_add_epi64(_mm256_and_si256(h, fields), _mm256_and_si256(_mm256_srli_epi64::<16>(h), fields));
+        let sums = _mm256_add_epi64(pairs, _mm256_srli_epi64::<32>(pairs));
+        // the low 32 bits of each 64-bit lane
+        let low = _mm256_permutevar8x32_epi32(sums, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6));
+        _mm256_castsi256_si128(low)
+    }
+}
+
+/// Wrapping 64-bit products `z · c` of four lanes, from three 32 × 32 → 64-bit ones.
+///
+/// # Safety
+/// AVX2 must be available.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn mul64(z: std::arch::x86_64::__m256i, c: u64) -> std::arch::x86_64::__m256i {
+    use std::arch::x86_64::*;
+    // SAFETY (whole body): the caller guarantees AVX2.
+    unsafe {
+        let lo = _mm256_set1_epi64x(c as u32 as i64);
+        let hi = _mm256_set1_epi64x((c >> 32) as i64);
+        let cross = _mm256_add_epi64(_mm256_mul_epu32(_mm256_srli_epi64::<32>(z), lo), _mm256_mul_epu32(z, hi));
+        _mm256_add_epi64(_mm256_mul_epu32(z, lo), _mm256_slli_epi64::<32>(cross))
+    }
 }
 
 impl Lens {
@@ -932,14 +1240,6 @@ enum Target<'a> {
     Ceiling,
     Side(&'a Span),
     Top(u32),
-}
-
-/// Where a hit takes its texture: a plan point (floor, ceiling), a box top's plan point, or a
-/// side's coordinate along it (offset included), its height and its lighting.
-enum Tex {
-    Flat([f64; 2]),
-    Top([f64; 2]),
-    Side(f32, f64, f32),
 }
 
 /// An approximately standard-normal value from a hash (sum of four uniforms, Irwin–Hall).
@@ -1153,6 +1453,31 @@ mod tests {
         assert_eq!(fingerprint(pitched), 13_441_642_304_231_375_879, "pitched camera");
         assert_eq!(fingerprint(lens), 11_269_747_614_991_474_503, "distorted lens");
         assert_eq!(fingerprint(blurred), 13_472_808_451_934_076_673, "motion blur and exposure");
+    }
+
+    /// Where AVX2 is available the views are shaded and exposed eight pixels at a time; the
+    /// scalar code (other CPUs) must give the same bytes, level and pitched, with and without
+    /// noise.
+    #[test]
+    fn lane_and_scalar_shading_agree_bit_for_bit() {
+        let world = World::office().with_random_obstacles(1).unwrap();
+        let mut pitched = small();
+        pitched.mount.pitch_rad = 0.1;
+        let poses = [world.start.advance(0.4, 0.3, 1.0), Pose::new(20.0, 0.0, 3.0), Pose::new(9.0, 0.4, 1.5)];
+        for calib in [small(), pitched] {
+            let mut r = Renderer::new(&world, &calib);
+            for (seq, &p) in poses.iter().enumerate() {
+                let fx = Effects { noise_sigma: 2.0, seed: 1, ..Effects::default() };
+                let mut views = Vec::new();
+                for simd in [simd_available(), false] {
+                    r.simd = simd;
+                    let mut img = LumaImage::default();
+                    r.render_frame(p, p, &fx, seq as u64, &mut img);
+                    views.push((img, r.render_with_depth(p)));
+                }
+                assert_eq!(views[0], views[1], "pose {p:?}");
+            }
+        }
     }
 
     #[test]

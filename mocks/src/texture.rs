@@ -41,6 +41,8 @@ pub struct Texture {
     /// Every level in one buffer: level `l` is `(SIZE >> l)²` texels, row-major, from `offsets[l]`.
     texels: Box<[u8; TEXELS]>,
     offsets: [usize; LEVELS],
+    /// `offsets` as the lanes of [`avx2`] index them (the pyramid has fewer than 2³¹ texels).
+    lane_offsets: [i32; LEVELS],
     /// Texels per metre of each level, `1 / (TEXEL_M · 2^l)`, computed once rather than per sample.
     scales: [f32; LEVELS],
 }
@@ -117,7 +119,8 @@ impl Texture {
         }
         debug_assert_eq!(at, PYRAMID);
         let Ok(texels) = texels.try_into() else { unreachable!("the buffer was made TEXELS long") };
-        Self { texels, offsets, scales }
+        let lane_offsets = offsets.map(|o| o as i32);
+        Self { texels, offsets, lane_offsets, scales }
     }
 
     /// Mip level `l`: `(SIZE >> l)²` texels, row-major.
@@ -223,6 +226,178 @@ fn fast_log2(x: f32) -> f32 {
     exp + (mant - 1.0)
 }
 
+/// Eight samples at once with AVX2, bit for bit those of [`Texture::sample`] and
+/// [`Texture::sample_detailed`]: the same IEEE operations in the same order per lane (no fused
+/// multiply-add: only `avx2` is enabled, so none can be formed), and the float ↔ integer
+/// conversions only where they agree with Rust's `as` (see [`avx2::floor_frac`]).
+#[cfg(target_arch = "x86_64")]
+pub(crate) mod avx2 {
+    use super::{DETAIL_GAIN, DETAIL_SCALE, LEVELS, SIZE, TEXEL_M, Texture};
+    use std::arch::x86_64::*;
+
+    // The `#[inline(always)]` functions here carry no `target_feature` themselves: they are
+    // inlined into the renderer's AVX2-enabled shading loop. Callers must ensure AVX2 is present.
+
+    /// Per lane [`Texture::sample`] where `detailed` is clear and [`Texture::sample_detailed`]
+    /// where it is set (all ones). Lanes whose coordinates a lane conversion would not treat like
+    /// `as i32` (beyond ±2³¹ texels, NaN) set `bad`: the caller takes the scalar path for them.
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    pub(crate) unsafe fn sample(
+        tex: &Texture,
+        u: __m256,
+        v: __m256,
+        footprint_m: __m256,
+        detailed: __m256,
+        bad: &mut __m256,
+    ) -> __m256 {
+        // SAFETY (whole body): the caller guarantees AVX2; `plain` reads only in-bounds texels.
+        unsafe {
+            let base = plain(tex, u, v, footprint_m, bad);
+            if _mm256_movemask_ps(detailed) == 0 {
+                return base;
+            }
+            let fine_m = _mm256_mul_ps(footprint_m, _mm256_set1_ps(DETAIL_SCALE));
+            // `maxps` returns its second operand for a NaN first one, as `f32::max` does
+            let coarse_m = _mm256_max_ps(fine_m, _mm256_set1_ps(4.0 * TEXEL_M));
+            let empty = _mm256_cmp_ps::<_CMP_EQ_OQ>(coarse_m, fine_m);
+            let gain = _mm256_set1_ps(DETAIL_GAIN);
+            let out = _mm256_blendv_ps(base, _mm256_add_ps(base, _mm256_mul_ps(gain, _mm256_setzero_ps())), detailed);
+            let band = _mm256_andnot_ps(empty, detailed);
+            if _mm256_movemask_ps(band) == 0 {
+                return out;
+            }
+            let du = _mm256_add_ps(_mm256_mul_ps(u, _mm256_set1_ps(DETAIL_SCALE)), _mm256_set1_ps(0.37));
+            let dv = _mm256_add_ps(_mm256_mul_ps(v, _mm256_set1_ps(DETAIL_SCALE)), _mm256_set1_ps(0.61));
+            let fine = plain(tex, du, dv, fine_m, bad);
+            let coarse = plain(tex, du, dv, coarse_m, bad);
+            let with_band = _mm256_add_ps(base, _mm256_mul_ps(gain, _mm256_sub_ps(fine, coarse)));
+            _mm256_blendv_ps(out, with_band, band)
+        }
+    }
+
+    /// [`Texture::sample`] per lane.
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    unsafe fn plain(tex: &Texture, u: __m256, v: __m256, footprint_m: __m256, bad: &mut __m256) -> __m256 {
+        // SAFETY (whole body): the caller guarantees AVX2; levels are clamped to the pyramid.
+        unsafe {
+            let lod =
+                _mm256_max_ps(fast_log2(_mm256_div_ps(footprint_m, _mm256_set1_ps(TEXEL_M))), _mm256_setzero_ps());
+            let coarsest = _mm256_cmp_ps::<_CMP_GE_OQ>(lod, _mm256_set1_ps((LEVELS - 1) as f32));
+            // below the coarsest level 0 ≤ lod < LEVELS − 1 and the conversion is exact; the
+            // coarsest lanes are overwritten at the end, their level only has to stay in range
+            let l0 = _mm256_min_epi32(_mm256_cvttps_epi32(lod), _mm256_set1_epi32(LEVELS as i32 - 2));
+            let f = _mm256_sub_ps(lod, _mm256_cvtepi32_ps(l0));
+            let a = bilinear(tex, l0, u, v, bad);
+            let k = _mm256_set1_ps(255.0);
+            let mut out = _mm256_div_ps(a, k);
+            let near = _mm256_cmp_ps::<_CMP_LT_OQ>(f, _mm256_set1_ps(0.01));
+            let tri = _mm256_andnot_ps(_mm256_or_ps(near, coarsest), _mm256_castsi256_ps(_mm256_set1_epi32(-1)));
+            if _mm256_movemask_ps(tri) != 0 {
+                let b = bilinear(tex, _mm256_add_epi32(l0, _mm256_set1_epi32(1)), u, v, bad);
+                let mixed = _mm256_div_ps(_mm256_add_ps(a, _mm256_mul_ps(_mm256_sub_ps(b, a), f)), k);
+                out = _mm256_blendv_ps(out, mixed, tri);
+            }
+            let last = tex.texels[tex.offsets[LEVELS - 1]] as f32 / 255.0;
+            _mm256_blendv_ps(out, _mm256_set1_ps(last), coarsest)
+        }
+    }
+
+    /// [`super::fast_log2`] per lane, its special cases included.
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    unsafe fn fast_log2(x: __m256) -> __m256 {
+        // SAFETY (whole body): the caller guarantees AVX2.
+        unsafe {
+            let bits = _mm256_castps_si256(x);
+            let exp = _mm256_and_si256(_mm256_srli_epi32::<23>(bits), _mm256_set1_epi32(0xff));
+            let exp = _mm256_sub_ps(_mm256_cvtepi32_ps(exp), _mm256_set1_ps(127.0));
+            let mant =
+                _mm256_or_si256(_mm256_and_si256(bits, _mm256_set1_epi32(0x007f_ffff)), _mm256_set1_epi32(0x3f80_0000));
+            let r = _mm256_add_ps(exp, _mm256_sub_ps(_mm256_castsi256_ps(mant), _mm256_set1_ps(1.0)));
+            let nonpositive = _mm256_cmp_ps::<_CMP_LE_OQ>(x, _mm256_setzero_ps());
+            let abs = _mm256_and_ps(x, _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff)));
+            let not_finite = _mm256_cmp_ps::<_CMP_NLT_UQ>(abs, _mm256_set1_ps(f32::INFINITY));
+            let r = _mm256_blendv_ps(r, _mm256_set1_ps(-126.0), nonpositive);
+            _mm256_blendv_ps(r, _mm256_set1_ps(126.0), not_finite)
+        }
+    }
+
+    /// [`super::floor_frac`] per lane. `cvttps2dq` truncates like `as i32` for |x| < 2³¹ and
+    /// differs beyond and for NaN (where `as` saturates or gives 0): such lanes set `bad`.
+    ///
+    /// # Safety
+    /// AVX2 must be available.
+    #[inline(always)]
+    unsafe fn floor_frac(x: __m256, bad: &mut __m256) -> (__m256i, __m256) {
+        // SAFETY (whole body): the caller guarantees AVX2.
+        unsafe {
+            let abs = _mm256_and_ps(x, _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff)));
+            *bad = _mm256_or_ps(*bad, _mm256_cmp_ps::<_CMP_NLT_UQ>(abs, _mm256_set1_ps(2_147_483_648.0)));
+            let i = _mm256_cvttps_epi32(x);
+            // a comparison's true lanes are −1: added, they take one off where i > x
+            let above = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GT_OQ>(_mm256_cvtepi32_ps(i), x));
+            let i = _mm256_add_epi32(i, above);
+            (i, _mm256_sub_ps(x, _mm256_cvtepi32_ps(i)))
+        }
+    }
+
+    /// [`Texture::bilinear`] per lane, each at its own `level` (0 ≤ level < LEVELS).
+    ///
+    /// # Safety
+    /// AVX2 must be available; every lane of `level` is below `LEVELS`.
+    #[inline(always)]
+    unsafe fn bilinear(tex: &Texture, level: __m256i, u: __m256, v: __m256, bad: &mut __m256) -> __m256 {
+        // SAFETY (whole body): the caller guarantees AVX2 and the levels. Each texel index is
+        // below the pyramid's size (masked within its level), and a gather reads 4 bytes from
+        // it: within the `TEXELS`-long buffer, which is longer than the pyramid by far more
+        // than 3 bytes.
+        unsafe {
+            let one = _mm256_set1_epi32(1);
+            let shift = _mm256_sub_epi32(_mm256_set1_epi32(SIZE.trailing_zeros() as i32), level);
+            let mask = _mm256_sub_epi32(_mm256_sllv_epi32(one, shift), one);
+            let scale = _mm256_i32gather_ps::<4>(tex.scales.as_ptr(), level);
+            let half = _mm256_set1_ps(0.5);
+            let x = _mm256_sub_ps(_mm256_mul_ps(u, scale), half);
+            let y = _mm256_sub_ps(_mm256_mul_ps(v, scale), half);
+            let (ix, fx) = floor_frac(x, bad);
+            let (iy, fy) = floor_frac(y, bad);
+            let x0 = _mm256_and_si256(ix, mask);
+            let x1 = _mm256_and_si256(_mm256_add_epi32(ix, one), mask);
+            let base = _mm256_i32gather_epi32::<4>(tex.lane_offsets.as_ptr(), level);
+            let row0 = _mm256_add_epi32(base, _mm256_sllv_epi32(_mm256_and_si256(iy, mask), shift));
+            let row1 =
+                _mm256_add_epi32(base, _mm256_sllv_epi32(_mm256_and_si256(_mm256_add_epi32(iy, one), mask), shift));
+            let (a, b) = (texel(tex, _mm256_add_epi32(row0, x0)), texel(tex, _mm256_add_epi32(row0, x1)));
+            let (c, d) = (texel(tex, _mm256_add_epi32(row1, x0)), texel(tex, _mm256_add_epi32(row1, x1)));
+            let top = _mm256_add_ps(a, _mm256_mul_ps(_mm256_sub_ps(b, a), fx));
+            let bot = _mm256_add_ps(c, _mm256_mul_ps(_mm256_sub_ps(d, c), fx));
+            _mm256_add_ps(top, _mm256_mul_ps(_mm256_sub_ps(bot, top), fy))
+        }
+    }
+
+    /// The texels at pyramid indices `i`, as floats.
+    ///
+    /// # Safety
+    /// AVX2 must be available; every lane of `i` is below the pyramid's size.
+    #[inline(always)]
+    unsafe fn texel(tex: &Texture, i: __m256i) -> __m256 {
+        // SAFETY: the caller guarantees AVX2 and the indices; a gather reads 4 bytes at each,
+        // within the `TEXELS`-long buffer (longer than the pyramid by far more than 3 bytes).
+        unsafe {
+            let word = _mm256_i32gather_epi32::<1>(tex.texels.as_ptr() as *const i32, i);
+            _mm256_cvtepi32_ps(_mm256_and_si256(word, _mm256_set1_epi32(0xff)))
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -274,6 +449,84 @@ mod tests {
             }
         }
         assert_eq!(h, 2_912_503_261_308_889_843, "samples");
+    }
+
+    /// Eight points through [`avx2::sample`]: the values and which lanes it flagged.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn lanes(t: &Texture, u: [f32; 8], v: [f32; 8], footprint: [f32; 8], detailed: [bool; 8]) -> ([f32; 8], [bool; 8]) {
+        use std::arch::x86_64::*;
+        let mask = detailed.map(|d| if d { -1i32 } else { 0 });
+        let (mut values, mut flags) = ([0f32; 8], [0i32; 8]);
+        // SAFETY: AVX2 is enabled here; the loads and stores are of eight-element arrays.
+        unsafe {
+            let mut bad = _mm256_setzero_ps();
+            let out = avx2::sample(
+                t,
+                _mm256_loadu_ps(u.as_ptr()),
+                _mm256_loadu_ps(v.as_ptr()),
+                _mm256_loadu_ps(footprint.as_ptr()),
+                _mm256_castsi256_ps(_mm256_loadu_si256(mask.as_ptr() as *const __m256i)),
+                &mut bad,
+            );
+            _mm256_storeu_ps(values.as_mut_ptr(), out);
+            _mm256_storeu_si256(flags.as_mut_ptr() as *mut __m256i, _mm256_castps_si256(bad));
+        }
+        (values, flags.map(|f| f != 0))
+    }
+
+    /// The renderer shades eight pixels at once through `avx2::sample`: it must give the scalar
+    /// samples bit for bit at every footprint (mip levels, the trilinear cut-off, the coarsest
+    /// level, the special cases of `fast_log2`) and coordinate, and flag the lanes whose
+    /// coordinates it cannot convert like `as i32`, which the renderer then samples one by one.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn lanes_sample_bit_for_bit_like_the_scalar_code() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let t = shared();
+        let mut points = Vec::new();
+        for i in 0..40_000 {
+            let (u, v) = (i as f32 * 0.0137 - 90.0, (i * 7 % 1000) as f32 * -0.0091 + 3.0);
+            points.push((u, v, 0.0001 * 1.0006f32.powi(i)));
+        }
+        for l in 0..LEVELS as i32 + 2 {
+            let exact = TEXEL_M * 2f32.powi(l);
+            for f in [exact, exact * 1.0069, exact * 1.0070, exact * 1.0071, exact * 0.9999] {
+                points.push((1.7, -2.3, f));
+            }
+        }
+        for f in [0.0, -0.0, -1.0, 1e-30, f32::MIN_POSITIVE, 1e30, f32::INFINITY, f32::NEG_INFINITY, f32::NAN] {
+            points.push((0.3, 0.4, f));
+        }
+        let far = [8e6, -8e6, 8.6e6, -8.6e6, 9e6, 1e12, -1e12, f32::NAN, f32::INFINITY];
+        for &x in &far {
+            points.push((x, 0.2, 0.001));
+            points.push((0.2, x, 0.01));
+        }
+        let mut flagged = 0;
+        for (k, chunk) in points.chunks(8).enumerate() {
+            let mut p = [(0.0, 0.0, 1.0); 8];
+            p[..chunk.len()].copy_from_slice(chunk);
+            for detailed in [[false; 8], [true; 8], std::array::from_fn(|i| (i + k) % 3 == 0)] {
+                // SAFETY: AVX2 was detected above.
+                let (values, bad) = unsafe { lanes(t, p.map(|q| q.0), p.map(|q| q.1), p.map(|q| q.2), detailed) };
+                for (i, &(u, v, f)) in p.iter().enumerate() {
+                    let convertible = |x: f32| x.abs() < 2e6;
+                    if bad[i] {
+                        flagged += 1;
+                        assert!(!(convertible(u) && convertible(v)), "({u}, {v}, {f}) flagged");
+                    } else {
+                        // (the scalar code is only asked where the lanes converted everything:
+                        // beyond, its `ix + 1` may overflow)
+                        let want = if detailed[i] { t.sample_detailed(u, v, f) } else { t.sample(u, v, f) };
+                        assert_eq!(values[i].to_bits(), want.to_bits(), "({u}, {v}, {f}) detailed {}", detailed[i]);
+                    }
+                }
+            }
+        }
+        assert!(flagged > 0, "far coordinates are flagged");
     }
 
     #[test]
