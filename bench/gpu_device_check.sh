@@ -40,7 +40,8 @@
 #   1. the flow_gpu test binary, --test-threads 8 (parity of both GPU paths with the CPU engine,
 #      bit-identical; it prints the adapter the tests ran on), once as built and once under each
 #      setting in $CHECK_ENVS (environment assignments, several separated by spaces, settings by
-#      ';'; default: the per-block kernel at 256 and 1024 invocations per workgroup).
+#      ';'; default: the per-block kernel at 256 and 1024 invocations per workgroup, and the cost
+#      volume with its rows summed unpacked, FLOWNAV_GPU_CV_SWAR=0).
 #      `cli_gpu_backend_runs_or_names_what_to_install` is skipped: it runs the `flownav` binary at
 #      the absolute path baked in at build time, which does not exist there.
 #   2. the benchmark (criterion, short: warm-up 1 s, measurement 2 s), groups
@@ -54,8 +55,8 @@
 #      default: the blocking wait, and 256 and 1024 invocations per workgroup of the per-block
 #      kernel, docs/gpu.md), to see what each part is worth on this card; VARIANTS= skips them.
 #      $VARIANT_FILTER picks other benchmarks for them (a criterion filter, e.g.
-#      'flow_gpu_720p/gpu/dense$' with the cost-volume settings FLOWNAV_GPU_CV_UNROLL and
-#      FLOWNAV_GPU_CV_SWAR, docs/gpu.md).
+#      'flow_gpu_720p/gpu/dense$' with the cost-volume setting FLOWNAV_GPU_CV_SWAR=0,
+#      docs/gpu.md).
 #   4. `flownav flow A B --repeat 300 --flow-backend gpu --json` on data/graf_shift_512 and
 #      data/motorcycle_stereo, baseline first: the `timing` object (wall time per pair of a
 #      waiting `compute`, min/median/p90 ms).
@@ -70,7 +71,7 @@ mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
 export FLOWNAV_DATA=${FLOWNAV_DATA:-$PWD/data}
 export RUST_BACKTRACE=1
 export CRITERION_HOME=${CRITERION_HOME:-/tmp/flownav-criterion}
-CHECK_ENVS=${CHECK_ENVS-"FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024"}
+CHECK_ENVS=${CHECK_ENVS-"FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024;FLOWNAV_GPU_CV_SWAR=0"}
 VARIANTS=${VARIANTS-"FLOWNAV_GPU_WAIT=block;FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024"}
 VARIANT_FILTER=${VARIANT_FILTER-'flow_gpu_720p/gpu(_stream_wait|_stream)?/default$'}
 status=0
@@ -87,7 +88,7 @@ command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,m
 parity() { # NAME [ASSIGNMENT...]
     name=$1
     shift
-    env -u FLOWNAV_GPU_MATCH_WG -u FLOWNAV_GPU_CV_UNROLL -u FLOWNAV_GPU_CV_SWAR "$@" timeout 60 \
+    env -u FLOWNAV_GPU_MATCH_WG -u FLOWNAV_GPU_CV_SWAR "$@" timeout 60 \
         "$BIN/flow_gpu_test" --test-threads 8 --nocapture --skip cli_gpu_backend_runs_or_names_what_to_install \
         >"$OUTDIR/tests_$name.txt" 2>&1
     rc=$?

@@ -76,7 +76,7 @@ impl CostVolShape {
              const TC: u32 = {tc}u;\nconst TR: u32 = {tr}u;\nconst G: u32 = {g}u;\nconst RWM: u32 = {rwm}u;\n\
              const RWQ: u32 = {rwq}u;\nconst QS: bool = {qs};\nconst VW: u32 = {vw}u;\n\
              const VSN: u32 = {vsn}u;\nconst CST: u32 = {cst}u;\nconst RST: u32 = {rst}u;\n\
-             const ROWBASE: u32 = {rowbase}u;\nconst UNROLL: u32 = {unroll}u;\nconst SWAR: u32 = {swar}u;\n\
+             const ROWBASE: u32 = {rowbase}u;\nconst SWAR: bool = {swar};\n\
              {common}{body}",
             wg = self.wg,
             bl = self.block,
@@ -93,18 +93,11 @@ impl CostVolShape {
             cst = CV_CST,
             rst = cv_rst(self.tr),
             rowbase = self.rowbase,
-            unroll = cv_variant("FLOWNAV_GPU_CV_UNROLL", 1, 1..=4),
-            swar = cv_variant("FLOWNAV_GPU_CV_SWAR", 0, 0..=2),
+            swar = std::env::var("FLOWNAV_GPU_CV_SWAR").as_deref() != Ok("0"),
             common = COMMON_WGSL,
             body = COSTVOL_WGSL,
         )
     }
-}
-
-/// A variant of the cost-volume kernel's phase 1 from the environment, for measuring them
-/// against each other on a device: `default` unless `var` holds a value in `range`.
-fn cv_variant(var: &str, default: u32, range: std::ops::RangeInclusive<u32>) -> u32 {
-    std::env::var(var).ok().and_then(|v| v.parse().ok()).filter(|v| range.contains(v)).unwrap_or(default)
 }
 
 /// Pipelines and layouts that do not depend on the frame size.

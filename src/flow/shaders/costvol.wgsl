@@ -29,9 +29,8 @@
 // The Rust side prepends: WG, BL (block side), R (radius), ND (2R+1), TC, TR (tile), G (dx per
 // group), RWM (widest tile region, px), RWQ (= ⌈RWM/4⌉), QS, VW (V words per block row and dx:
 // RWQ with QS, else RWM), VSN (= G·VW·TR), CST/RST (tile-table strides),
-// ROWBASE (offset of the row-tile table), UNROLL (rows per step of a walk: 1, 2 or 4) and
-// SWAR (with QS, how a row's 4 differences are summed: 0 unpacked, 1 in place with a packed
-// dot product, 2 in place with shifts; docs/gpu.md).
+// ROWBASE (offset of the row-tile table), SWAR (with QS, a row's 4 differences taken and
+// summed in place, `row_cost`; docs/gpu.md).
 //
 // Tile table `tiles` (u32): column tile tc at tc·CST: [X0, region width, valid columns];
 // row tile tr at ROWBASE + tr·RST: [Y0, region height, valid rows, n events, events...], each
@@ -78,35 +77,6 @@ fn word_b(i: u32) -> u32 {
     return 0u;
 }
 
-// The packed 4 pixels of A at frame row ay of a walk and of B at row ay + dy (0 outside the
-// frame): the row step of phase 1, for the unrolled steps.
-fn words(ay: u32, awx: u32, ash: u32, a0: bool, a1: bool, bwx: i32, bsh: u32, b0: bool, b1: bool, dy: i32) -> vec2<u32> {
-    var alo = 0u;
-    var ahi = 0u;
-    if ay < lv.h {
-        let ai = ay * lv.ws + awx;
-        if a0 {
-            alo = word_a(ai);
-        }
-        if a1 {
-            ahi = word_a(ai + 1u);
-        }
-    }
-    let by = i32(ay) + dy;
-    var blo = 0u;
-    var bhi = 0u;
-    if by >= 0 && by < i32(lv.h) {
-        let bi = u32(by * i32(lv.ws) + bwx);
-        if b0 {
-            blo = word_b(bi);
-        }
-        if b1 {
-            bhi = word_b(bi + 1u);
-        }
-    }
-    return vec2<u32>(funnel(alo, ahi, ash), funnel(blo, bhi, bsh));
-}
-
 // |a − b| of each of the 4 bytes of two packed words, in place (SIMD within the register):
 // bit 7 of `ge` says a ≥ b per byte, from the top bits and a borrow-free subtraction of the low
 // seven; then max − min per byte, which cannot borrow across bytes.
@@ -121,16 +91,12 @@ fn absdiff_bytes(a: u32, b: u32) -> u32 {
 }
 
 // One row's absolute differences for the 4 columns of a walk (`aw`, `bw`: A's and B's words).
-// With quad sums (QS) only their total is used, so SWAR adds the 4 in place and returns the
-// total in x: 1 by a packed dot product, 2 by shifts and masks; 0 unpacks the 4 columns.
+// With quad sums (QS) only their total is used: with SWAR the 4 differences are taken in place
+// and added by a packed dot product (one instruction where the GPU has it), the total in x;
+// otherwise the 4 columns are unpacked.
 fn row_cost(aw: u32, bw: u32) -> vec4<u32> {
-    if QS && SWAR == 1u {
+    if QS && SWAR {
         return vec4<u32>(dot4U8Packed(absdiff_bytes(aw, bw), 0x01010101u), 0u, 0u, 0u);
-    }
-    if QS && SWAR == 2u {
-        let d = absdiff_bytes(aw, bw);
-        let p = (d & 0x00ff00ffu) + ((d >> 8u) & 0x00ff00ffu);
-        return vec4<u32>((p & 0xffffu) + (p >> 16u), 0u, 0u, 0u);
     }
     let a = unpack(aw);
     let b = unpack(bw);
@@ -177,28 +143,6 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                 for (var e = 0u; e < nev; e++) {
                     let ev = tile(rb + 4u + e);
                     let ye = min(ev >> 12u, rh);
-                    // UNROLL rows per step in straight-line code, so that their loads are
-                    // issued together (the walk is a chain of row steps, and a step's loads
-                    // would otherwise wait alone); written out, as the driver keeps a
-                    // dynamically indexed array in slow local memory. The rest row by row.
-                    if UNROLL >= 4u {
-                        while y + 4u <= ye {
-                            let w0 = words(y0t + y, awx, ash, a0, a1, bwx, bsh, b0, b1, dy);
-                            let w1 = words(y0t + y + 1u, awx, ash, a0, a1, bwx, bsh, b0, b1, dy);
-                            let w2 = words(y0t + y + 2u, awx, ash, a0, a1, bwx, bsh, b0, b1, dy);
-                            let w3 = words(y0t + y + 3u, awx, ash, a0, a1, bwx, bsh, b0, b1, dy);
-                            s += row_cost(w0.x, w0.y) + row_cost(w1.x, w1.y) + row_cost(w2.x, w2.y)
-                                + row_cost(w3.x, w3.y);
-                            y += 4u;
-                        }
-                    } else if UNROLL >= 2u {
-                        while y + 2u <= ye {
-                            let w0 = words(y0t + y, awx, ash, a0, a1, bwx, bsh, b0, b1, dy);
-                            let w1 = words(y0t + y + 1u, awx, ash, a0, a1, bwx, bsh, b0, b1, dy);
-                            s += row_cost(w0.x, w0.y) + row_cost(w1.x, w1.y);
-                            y += 2u;
-                        }
-                    }
                     while y < ye {
                         let ay = y0t + y;
                         var alo = 0u;
