@@ -12,7 +12,8 @@ pub const MAX_RADIUS: usize = 7;
 /// Reusable buffers for [`highpass`].
 #[derive(Debug, Default)]
 pub struct Scratch {
-    colsum: Vec<u16>,
+    /// The column sums of the current row's window, with K copies of the first and of the
+    /// last on either side (the edge replication in x), updated in place row by row.
     ext: Vec<u16>,
 }
 
@@ -68,19 +69,16 @@ fn highpass_k<const K: usize>(src: &LumaImage, dst: &mut LumaImage, scratch: &mu
     let n = ((2 * K + 1) * (2 * K + 1)) as u16;
     let half = (n - 1) / 2;
     let row = |y: isize| src.row(y.clamp(0, h as isize - 1) as usize);
-    let colsum = &mut scratch.colsum;
-    colsum.clear();
-    colsum.resize(w, 0);
+    let ext = &mut scratch.ext;
+    ext.clear();
+    ext.resize(w + 2 * K, 0);
     for j in -(K as isize)..=K as isize {
-        for (s, &p) in colsum.iter_mut().zip(row(j)) {
+        for (s, &p) in ext[K..K + w].iter_mut().zip(row(j)) {
             *s += u16::from(p);
         }
     }
-    let ext = &mut scratch.ext;
-    ext.resize(w + 2 * K, 0);
     for y in 0..h {
-        ext[K..K + w].copy_from_slice(colsum);
-        let (first, last) = (colsum[0], colsum[w - 1]);
+        let (first, last) = (ext[K], ext[K + w - 1]);
         ext[..K].fill(first);
         ext[K + w..].fill(last);
         let out = &mut dst.data_mut()[y * w..(y + 1) * w];
@@ -93,7 +91,7 @@ fn highpass_k<const K: usize>(src: &LumaImage, dst: &mut LumaImage, scratch: &mu
             *o = (128 + i16::from(p) - mean as i16).clamp(0, 255) as u8;
         }
         let (add, sub) = (row(y as isize + K as isize + 1), row(y as isize - K as isize));
-        for ((s, &a), &r) in colsum.iter_mut().zip(add).zip(sub) {
+        for ((s, &a), &r) in ext[K..K + w].iter_mut().zip(add).zip(sub) {
             *s = *s + u16::from(a) - u16::from(r);
         }
     }
