@@ -465,8 +465,8 @@ impl Renderer {
             // one view through a pinhole (the simulator's frames): exposure and noise are
             // applied as each row is traced, without a buffer of values in between
             let view = self.view(from.lerp(&pose, 1.0));
-            out.data_mut().par_chunks_mut(w).enumerate().with_min_len(4).for_each(|(v, dst)| {
-                self.trace_row(&view, v, true, |u, run, n| {
+            out.data_mut().par_chunks_mut(w).enumerate().with_min_len(4).for_each_init(Run::new, |run, (v, dst)| {
+                self.trace_row(&view, v, true, run, |u, run, n| {
                     let noise = Noise { gain, offset, sigma, seed, first: v * w + u };
                     self.expose_run(&run.value[..n], &mut dst[u..u + n], &noise);
                 });
@@ -496,13 +496,13 @@ impl Renderer {
     /// Grey values as `f32` (added to `acc` when `add`).
     fn trace_values(&self, pose: Pose, acc: &mut [f32], add: bool) {
         let view = self.view(pose);
-        acc.par_chunks_mut(self.width).enumerate().with_min_len(4).for_each(|(v, row)| {
+        acc.par_chunks_mut(self.width).enumerate().with_min_len(4).for_each_init(Run::new, |run, (v, row)| {
             if add {
-                self.trace_row(&view, v, true, |u, run, n| {
+                self.trace_row(&view, v, true, run, |u, run, n| {
                     row[u..u + n].iter_mut().zip(&run.value).for_each(|(a, &x)| *a += x)
                 });
             } else {
-                self.trace_row(&view, v, true, |u, run, n| row[u..u + n].copy_from_slice(&run.value[..n]));
+                self.trace_row(&view, v, true, run, |u, run, n| row[u..u + n].copy_from_slice(&run.value[..n]));
             }
         });
     }
@@ -530,9 +530,10 @@ impl Renderer {
         };
         // depth and surface ids alone need no texture
         let grey = img_rows.first().is_some_and(Option::is_some);
-        img_rows.into_par_iter().zip(depth_rows).zip(id_rows).enumerate().with_min_len(4).for_each(
-            |(v, ((mut img, mut depth), mut ids))| {
-                self.trace_row(&view, v, grey, |u, run, n| {
+        img_rows.into_par_iter().zip(depth_rows).zip(id_rows).enumerate().with_min_len(4).for_each_init(
+            Run::new,
+            |run, (v, ((mut img, mut depth), mut ids))| {
+                self.trace_row(&view, v, grey, run, |u, run, n| {
                     if let Some(r) = img.as_deref_mut() {
                         r[u..u + n].iter_mut().zip(&run.value).for_each(|(o, &x)| *o = G::from_value(x));
                     }
@@ -557,31 +558,21 @@ impl Renderer {
             // every pixel of row v the vertical part of (0, y_n(v)) (`CameraPose::direction`:
             // the row's cos − y_n·sin is exactly 1 and the column's x_n does not enter the
             // vertical part), so both are computed once.
+            // each column keeps its own sorted list (no room for [`MAX_SPANS`] reserved per column)
             let columns: Vec<Column> = self
                 .xn
-                .iter()
+                .par_iter()
                 .map(|&xn| {
                     let (dh, _) = cam.direction(xn, 0.0);
-                    Column { dh, dh2: dh[0] * dh[0] + dh[1] * dh[1] }
+                    let mut spans: Vec<Span> = self.prims.iter().filter_map(|p| self.span(p, &cam, dh)).collect();
+                    spans.sort_by(|a, b| a.s_in.total_cmp(&b.s_in));
+                    let blocks_all = |s: &Span| !s.solid && s.z0 <= 0.0 && self.ceiling.is_some_and(|c| s.z1 >= c);
+                    let n = spans.iter().take(MAX_SPANS).position(blocks_all).map_or(MAX_SPANS, |i| i + 1);
+                    spans.truncate(n);
+                    Column { dh, dh2: dh[0] * dh[0] + dh[1] * dh[1], spans }
                 })
                 .collect();
-            let mut spans = vec![Span::default(); self.width * MAX_SPANS];
-            let mut counts = vec![0u8; self.width];
-            spans.par_chunks_mut(MAX_SPANS).zip(counts.par_iter_mut()).zip(&columns).for_each(|((out, count), col)| {
-                let mut list: Vec<Span> = self.prims.iter().filter_map(|p| self.span(p, &cam, col.dh)).collect();
-                list.sort_by(|a, b| a.s_in.total_cmp(&b.s_in));
-                let mut n = 0;
-                for s in list.into_iter().take(MAX_SPANS) {
-                    let blocks_all = !s.solid && s.z0 <= 0.0 && self.ceiling.is_some_and(|c| s.z1 >= c);
-                    out[n] = s;
-                    n += 1;
-                    if blocks_all {
-                        break;
-                    }
-                }
-                *count = n as u8;
-            });
-            View::Level { cam, columns, spans, counts }
+            View::Level { cam, columns }
         } else {
             let top = self.yn[0];
             let bottom = self.yn[self.height - 1];
@@ -613,12 +604,12 @@ impl Renderer {
 
     /// Traces row `v` of `view` in runs of up to [`RUN`] pixels, handing each run to `put` with
     /// its first column and length; without `grey` the values are left 0 (no texture is
-    /// sampled), sky's [`SKY`].
+    /// sampled), sky's [`SKY`]. `run` is scratch space kept across rows (every lane that is
+    /// shaded or handed out is written first, so what an earlier row left is never read).
     #[inline(always)]
-    fn trace_row(&self, view: &View, v: usize, grey: bool, mut put: impl FnMut(usize, &Run, usize)) {
-        let mut run = Run::new();
+    fn trace_row(&self, view: &View, v: usize, grey: bool, run: &mut Run, mut put: impl FnMut(usize, &Run, usize)) {
         match view {
-            View::Level { cam, columns, spans, counts } => {
+            View::Level { cam, columns } => {
                 let (_, dz) = cam.direction(0.0, self.yn[v]);
                 let zc = cam.position[2];
                 let (mut best0, mut base) = (f64::INFINITY, Target::Sky);
@@ -630,10 +621,9 @@ impl Renderer {
                     base = Target::Ceiling;
                 }
                 let flat = Flat::of(self, dz);
-                let columns = columns.iter().zip(spans.chunks_exact(MAX_SPANS).zip(counts));
-                self.runs(&mut run, grey, &mut put, columns, |run, i, (col, (spans, &count))| {
+                self.runs(run, grey, &mut put, columns.iter(), |run, i, col| {
                     let (mut best, mut what) = (best0, base);
-                    for s in &spans[..count as usize] {
+                    for s in &col.spans {
                         if s.s_in >= best {
                             break;
                         }
@@ -644,7 +634,7 @@ impl Renderer {
                 });
             }
             View::Pitched { cam, candidates } => {
-                self.runs(&mut run, grey, &mut put, candidates.iter().enumerate(), |run, i, (u, candidates)| {
+                self.runs(run, grey, &mut put, candidates.iter().enumerate(), |run, i, (u, candidates)| {
                     self.pitched_pixel(cam, candidates, u, v, run, i)
                 });
             }
@@ -1198,14 +1188,16 @@ impl Lens {
 
 /// Per-view data of [`Renderer::view`].
 enum View {
-    Level { cam: CameraPose, columns: Vec<Column>, spans: Vec<Span>, counts: Vec<u8> },
+    Level { cam: CameraPose, columns: Vec<Column> },
     Pitched { cam: CameraPose, candidates: Vec<Vec<u32>> },
 }
 
-/// A pixel column of a level camera: its plan direction and that direction's squared length.
+/// A pixel column of a level camera: its plan direction, that direction's squared length and
+/// the spans it meets, nearest first (at most [`MAX_SPANS`], none behind one that blocks all).
 struct Column {
     dh: [f64; 2],
     dh2: f64,
+    spans: Vec<Span>,
 }
 
 /// A pixel's ray `(dh, dz)`: plan direction and slope, its squared length `dir2`, and the
