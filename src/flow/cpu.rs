@@ -45,7 +45,6 @@ pub struct CpuFlow {
     /// The frame size `origins` was placed for.
     origins_size: Option<(usize, usize)>,
     disp: Vec<(i32, i32)>,
-    prev: Vec<(i32, i32)>,
     flags: Vec<(bool, bool)>,
     /// One per thread ([`Sweeps`]): thread 0 is the calling thread.
     bufs: Vec<ThreadBufs>,
@@ -163,7 +162,6 @@ impl CpuFlow {
             origins: Vec::new(),
             origins_size: None,
             disp: Vec::new(),
-            prev: Vec::new(),
             flags: Vec::new(),
             bufs: vec![ThreadBufs::default()],
             sweeps: Sweeps::default(),
@@ -233,11 +231,9 @@ impl FlowEngine for CpuFlow {
         self.field.cols = cols;
         self.field.width = w;
         self.field.height = h;
-        self.field.vectors.clear();
-
+        // Every entry is written at level 0; this only sets the length.
         self.field.vectors.resize(n, FlowVector::from_match((0, 0), p.block, (0, 0), (0.0, 0.0), Validity::Valid, 0));
         for l in (0..nlev).rev() {
-            self.prev.clone_from(&self.disp);
             self.sweeps.reset(rows, self.bufs.len());
             let job = LevelJob {
                 params: p,
@@ -246,7 +242,9 @@ impl FlowEngine for CpuFlow {
                 coarsest: l == nlev - 1,
                 kernel: self.kernels[l],
                 origins: &self.origins,
-                prev: &self.prev,
+                // The threads write into their own buffers, so the coarser level's result
+                // stays in place until the level is done.
+                prev: &self.disp,
                 flags: &self.flags,
                 rows,
                 cols,
