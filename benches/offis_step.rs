@@ -28,7 +28,7 @@ fn bench(c: &mut Criterion) {
     let dt = 1.0 / 30.0;
     let field = scene.flow(&calib, 16, 16, vel, dt).field;
     let mut offis = Offis::new(OffisParams::default()).expect("built-in rules");
-    let since = Motion { yaw_rad: vel.omega * dt, dt };
+    let since = Motion { yaw_rad: vel.omega * dt, dt, forward_m: vel.v * dt };
     c.bench_function("offis_step_16x16", |b| {
         b.iter(|| offis.step_filtered(black_box(&field), vel, dt, &calib, since).expect("valid field"))
     });

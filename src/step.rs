@@ -325,8 +325,8 @@ impl Pipeline {
         // the pair's motion as one constant velocity over its interval
         let span = BodyVelocity::new(key.travel_m / dt, key.yaw_rad / dt);
         let flow = self.turn.flow(self.flow.as_mut(), &key.frame.image, &frame.image, &calib, span, dt)?;
-        // the TPO is decided over the last steps: OFFIS needs the turn since its previous step
-        let since = Motion { yaw_rad: odometry.omega * frame_dt, dt: frame_dt };
+        // the TPO is decided over the last steps: OFFIS needs the motion since its previous step
+        let since = Motion { yaw_rad: odometry.omega * frame_dt, dt: frame_dt, forward_m: odometry.v * frame_dt };
         let perception = self.offis.step_filtered(&flow, span, dt, &calib, since)?;
         let measured = self.mofis.measurable(span, dt, key.turn_change);
         let (seq, t_ns) = (frame.seq, frame.t_ns);

@@ -225,14 +225,18 @@ fn jpeg_frames_replay_through_the_decoder_and_dropped_images_are_reported_not_fa
         steps.iter().filter(|(_, c, _)| matches!(c, Check::Unchecked { .. })).map(|s| s.0).collect();
     assert_eq!(unchecked, [3, 4]);
     // Flow keeps no state between steps: after the gap it still matches exactly; only what
-    // depends on history may differ: PAFSIS progress → goal, the limiter → set-point, and the
-    // TPO that OFFIS decides over its last steps (offis::temporal), never OFFIS's own pair.
+    // depends on history may differ: PAFSIS progress → goal, the limiter → set-point, the TPO
+    // that OFFIS decides over its last steps (offis::temporal) and what follows from the profile
+    // whose empty bins take earlier pairs' points (offis::carry): the planes, the features, the
+    // pair's class and the obstacle measured against the planes; never the pair's flow or masks.
+    let carried = ["tpo", "obstacle", "attributes.bins", "attributes.carried_bins", "attributes.model"];
+    let carried_too = ["attributes.features", "attributes.decision", "attributes.obstacle_"];
     for (seq, check, after_gap) in &steps {
         if let Check::Mismatch { diffs } = check {
             assert!(after_gap, "seq {seq} differs before the gap: {diffs:?}");
             for d in diffs {
-                let tpo =
-                    d.topic == "/offis/perception" && (d.field.starts_with("tpo") || d.field.contains("filtered"));
+                let history = carried.iter().chain(&carried_too).any(|p| d.field.starts_with(p));
+                let tpo = d.topic == "/offis/perception" && (history || d.field.contains("filtered"));
                 assert!(tpo || ["/pafsis/goal", "/control/setpoint"].contains(&d.topic.as_str()), "seq {seq}: {d}");
             }
         }

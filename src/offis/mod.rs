@@ -31,6 +31,7 @@
 //!
 //! The step is pure and deterministic: no clock, no I/O; its buffers are reused between frames.
 
+pub mod carry;
 pub mod classify;
 pub mod features;
 pub mod geometry;
@@ -45,6 +46,7 @@ pub mod temporal;
 use crate::config_error::ConfigError;
 use crate::flow::FlowField;
 use crate::perception::{Obstacle, Perception, Tpo, TpoShape};
+use carry::{CarryLimits, ProfileCarry};
 use classify::Classifier;
 pub use classify::{ClassifierKind, ClassifyError, Decision};
 use features::{Bin, Features, TpoModel};
@@ -104,7 +106,7 @@ impl OffisParams {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         let t = &self.temporal;
-        let checks: [(&str, bool, &str); 19] = [
+        let checks: [(&str, bool, &str); 20] = [
             ("outlier.k_median", pos(self.outlier.k_median), "must be a positive number (typ. 2..5)"),
             ("outlier.floor_px", nonneg(self.outlier.floor_px), "must be ≥ 0 pixels"),
             ("outlier.min_support", self.outlier.min_support <= 8, "must be in 0..=8 neighbours"),
@@ -140,6 +142,11 @@ impl OffisParams {
                 "and temporal.max_age_s must be positive",
             ),
             ("temporal.min_baseline_px", nonneg(t.min_baseline_px), "must be ≥ 0 pixels (0: off)"),
+            (
+                "temporal.carry_m",
+                nonneg(t.carry_m) && nonneg(t.carry_turn_rad) && nonneg(t.carry_age_s),
+                "and temporal.carry_turn_rad, temporal.carry_age_s must be ≥ 0 (carry_m 0: off)",
+            ),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err(ConfigError::invalid(format!("offis.{field}"), *problem)),
@@ -175,8 +182,10 @@ pub struct Attributes {
     /// blocks, m (`None`: not translating, or no block measurable).
     pub forward_l3: [[Option<f64>; 8]; 8],
     pub range_l3: [[Option<f64>; 8]; 8],
-    /// The envelope profile, left image column first ([`features`]).
+    /// The envelope profile, left image column first ([`features`]) ...
     pub bins: Vec<Bin>,
+    /// ... of which this many bins hold a point carried from earlier steps ([`carry`]).
+    pub carried_bins: usize,
     /// The TPO's planes fitted to it.
     pub model: TpoModel,
     /// The classifier inputs (flownav's, computed in both modes).
@@ -200,6 +209,7 @@ pub struct Offis {
     params: OffisParams,
     classifier: Classifier,
     filter: ClassFilter,
+    carry: ProfileCarry,
     u: Vec<f64>,
     v: Vec<f64>,
     valid: Vec<bool>,
@@ -223,6 +233,7 @@ impl Offis {
         let classifier = Classifier::load_kind(params.classifier, params.rules_dir.as_deref())?;
         Ok(Self {
             filter: ClassFilter::new(params.temporal),
+            carry: ProfileCarry::new(CarryLimits::from_temporal(&params.temporal)),
             params,
             classifier,
             u: Vec::new(),
@@ -261,7 +272,7 @@ impl Offis {
         dt: f64,
         calib: &Calibration,
     ) -> Result<Perception, OffisError> {
-        self.filter.reset();
+        self.reset_filter();
         self.step_filtered(flow, odo, dt, calib, Motion::default())
     }
 
@@ -284,6 +295,7 @@ impl Offis {
     /// a failure).
     pub fn reset_filter(&mut self) {
         self.filter.reset();
+        self.carry.reset();
     }
 
     /// One frame pair of a sequence, as [`Offis::step`], with `since` the robot's motion since
@@ -424,11 +436,13 @@ impl Offis {
         // the profile looks at the planes from about the camera's height up (walls reach the
         // ceiling, the floor never gets there, even with a grossly wrong depth)
         let profile_min_m = features::PROFILE_MIN_REL * z_m;
-        if foe.is_some() {
-            for b in 0..nb {
-                let (c0, c1) = (b * grid.cols / nb, (b + 1) * grid.cols / nb);
-                let x = 0.5 * (flow.at(0, c0).x as f64 + flow.at(0, c1 - 1).x as f64);
-                self.picks.clear();
+        // the bins' bearings always (a step without translation may take carried points), their
+        // points only while translating
+        for b in 0..nb {
+            let (c0, c1) = (b * grid.cols / nb, (b + 1) * grid.cols / nb);
+            let x = 0.5 * (flow.at(0, c0).x as f64 + flow.at(0, c1 - 1).x as f64);
+            self.picks.clear();
+            if foe.is_some() {
                 for r in 0..grid.rows {
                     for c in c0..c1 {
                         if let Some(l) =
@@ -438,15 +452,28 @@ impl Offis {
                         }
                     }
                 }
-                self.picks.sort_by(|a, b| a.0.total_cmp(&b.0));
-                let point = (!self.picks.is_empty()).then(|| self.picks[(self.picks.len() * 3) / 4].1);
-                let horizon = cam.cy - cam.fy * cam.pitch_rad.tan();
-                bins.push(Bin { point, bearing: cam.bearing(x, horizon) - motion.yaw });
             }
+            self.picks.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let point = (!self.picks.is_empty()).then(|| self.picks[(self.picks.len() * 3) / 4].1);
+            let horizon = cam.cy - cam.fy * cam.pitch_rad.tan();
+            bins.push(Bin { point, bearing: cam.bearing(x, horizon) - motion.yaw });
         }
+        // a step without translation, or with too short a baseline for its depth to be more than
+        // matching noise, measures nothing; a step that measures fills its empty bins from the
+        // points of the steps before ([`carry`]) and passes its own on
+        self.carry.advance(since, [cam.mount_m[0], cam.mount_m[1]]);
+        let evidence = foe.is_some() && odo.v.abs() * dt * cam.fx >= self.params.temporal.min_baseline_px;
+        // without translation the profile is all carried points (the robot standing or turning
+        // on the spot, its odometry turn moving them); a short pair's own points are too noisy
+        // to pass on, and its gaps are left open
+        let carried_bins = match (evidence, foe) {
+            (true, _) => self.carry.fill_and_keep(&mut bins),
+            (false, None) => self.carry.fill(&mut bins),
+            (false, Some(_)) => 0,
+        };
         let model = TpoModel::fit(&bins);
         let features = Features::compute(&bins, &model);
-        let decision = if foe.is_some() {
+        let decision = if foe.is_some() || carried_bins > 0 {
             match self.params.classifier {
                 ClassifierKind::Flownav => self.classifier.classify(&features),
                 ClassifierKind::Paper => self.classifier.classify_paper(&paper),
@@ -455,11 +482,17 @@ impl Offis {
         } else {
             Decision::default()
         };
-        // the decision over the last steps; a step without translation, or with too short a
-        // baseline for its depth to be more than matching noise, measures nothing
+        // the decision over the last steps
         self.filter.advance(since);
-        let evidence = foe.is_some() && odo.v.abs() * dt * cam.fx >= self.params.temporal.min_baseline_px;
-        let filtered = if evidence { self.filter.push(&decision) } else { self.filter.held() };
+        let filtered = match (evidence, self.filter.held()) {
+            (true, _) => self.filter.push(&decision),
+            // the window has forgotten everything (turned or aged past its limits): what the
+            // carried points show, when the robot is not translating
+            (false, held) if held.steps == 0 && foe.is_none() && carried_bins > 0 => {
+                Filtered { shape: decision.shape, confidence: decision.confidence, classes: decision.classes, steps: 0 }
+            }
+            (false, held) => held,
+        };
 
         // The obstacle: blocks clearly nearer than the TPO's surface in their bin, grouped into
         // 8-connected clusters; the nearest sizeable cluster, its cell by Fig. 6 on its blocks.
@@ -539,6 +572,7 @@ impl Offis {
             forward_l3,
             range_l3,
             bins,
+            carried_bins,
             model,
             features,
             paper,

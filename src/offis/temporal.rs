@@ -44,22 +44,41 @@ pub struct TemporalParams {
     /// matching noise, so the same at every resolution); a shorter pair reports the window's
     /// decision, as a step without translation does. 0: every translating pair counts.
     pub min_baseline_px: f64,
+    /// A profile bin that a pair leaves empty takes the newest envelope point of an earlier
+    /// pair that the robot's motion has moved into it ([`super::carry`]), for at most this
+    /// travel, m (0: off) ...
+    pub carry_m: f64,
+    /// ... this turn, rad ...
+    pub carry_turn_rad: f64,
+    /// ... and this time, s.
+    pub carry_age_s: f64,
 }
 
 impl Default for TemporalParams {
     fn default() -> Self {
-        Self { window: 8, decay: 0.8, max_turn_rad: 0.25, max_age_s: 1.0, min_baseline_px: 8.0 }
+        Self {
+            window: 8,
+            decay: 0.8,
+            max_turn_rad: 0.25,
+            max_age_s: 1.0,
+            min_baseline_px: 8.0,
+            carry_m: 0.6,
+            carry_turn_rad: 0.8,
+            carry_age_s: 3.0,
+        }
     }
 }
 
 /// The largest window accepted (the ring is allocated once at this size or less).
 pub const MAX_WINDOW: usize = 64;
 
-/// The robot's motion since the previous step: turn (odometry), rad, and the frame interval, s.
+/// The robot's motion since the previous step, from the odometry: turn, rad, the frame
+/// interval, s, and the forward travel, m.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Motion {
     pub yaw_rad: f64,
     pub dt: f64,
+    pub forward_m: f64,
 }
 
 /// The TPO decision over the window.
@@ -172,7 +191,7 @@ mod tests {
         Decision { shape, confidence: m, groups: [0.0; 3], classes }
     }
 
-    const FRAME: Motion = Motion { yaw_rad: 0.0, dt: 1.0 / 30.0 };
+    const FRAME: Motion = Motion { yaw_rad: 0.0, dt: 1.0 / 30.0, forward_m: 0.0 };
 
     fn filter() -> ClassFilter {
         ClassFilter::new(TemporalParams::default())
@@ -195,9 +214,9 @@ mod tests {
         let held = f.held();
         assert_eq!((held.shape, held.steps), (TpoShape::Corridor, 5));
         assert!((held.confidence - 0.9).abs() < 1e-12);
-        f.advance(Motion { yaw_rad: 0.2, dt: 1.0 / 30.0 });
+        f.advance(Motion { yaw_rad: 0.2, dt: 1.0 / 30.0, forward_m: 0.0 });
         assert_eq!(f.held().shape, TpoShape::Corridor, "0.2 rad is inside max_turn_rad");
-        f.advance(Motion { yaw_rad: -0.1, dt: 1.0 / 30.0 });
+        f.advance(Motion { yaw_rad: -0.1, dt: 1.0 / 30.0, forward_m: 0.0 });
         assert_eq!(f.held(), Filtered::default(), "0.3 rad turned in all: the corridor is forgotten");
         // standing still: forgotten with age
         drive(&mut f, 3, TpoShape::Wall, 0.8);
@@ -260,7 +279,7 @@ mod tests {
         drive(&mut f, 8, TpoShape::Corridor, 1.0);
         // turning on the spot at 1 rad/s for 0.3 s: the corridor's memberships are forgotten
         for _ in 0..9 {
-            f.advance(Motion { yaw_rad: 1.0 / 30.0, dt: 1.0 / 30.0 });
+            f.advance(Motion { yaw_rad: 1.0 / 30.0, dt: 1.0 / 30.0, forward_m: 0.0 });
         }
         assert!(f.is_empty());
         let out = f.push(&evidence(TpoShape::Wall, 0.4, 0.0));
@@ -273,16 +292,16 @@ mod tests {
         f.push(&evidence(TpoShape::Corner, 1.0, 0.0));
         // 0.2 rad in total (under the 0.25 rad limit), 0.5 s (under the 1 s limit)
         for _ in 0..5 {
-            f.advance(Motion { yaw_rad: -0.04, dt: 0.1 });
+            f.advance(Motion { yaw_rad: -0.04, dt: 0.1, forward_m: 0.0 });
         }
         assert_eq!(f.len(), 1);
-        f.advance(Motion { yaw_rad: -0.1, dt: 0.1 });
+        f.advance(Motion { yaw_rad: -0.1, dt: 0.1, forward_m: 0.0 });
         assert!(f.is_empty(), "turned 0.3 rad since");
         f.push(&evidence(TpoShape::Corner, 1.0, 0.0));
-        f.advance(Motion { yaw_rad: 0.0, dt: 1.5 });
+        f.advance(Motion { yaw_rad: 0.0, dt: 1.5, forward_m: 0.0 });
         assert!(f.is_empty(), "a 1.5 s gap");
         f.push(&evidence(TpoShape::Corner, 1.0, 0.0));
-        f.advance(Motion { yaw_rad: f64::NAN, dt: 0.03 });
+        f.advance(Motion { yaw_rad: f64::NAN, dt: 0.03, forward_m: 0.0 });
         assert!(f.is_empty(), "unknown motion");
     }
 

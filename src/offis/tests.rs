@@ -348,7 +348,7 @@ fn a_pair_with_too_short_a_baseline_adds_nothing_to_the_window() {
     // the nominal C310 at 1280x720: fx = 1272 px, so the default 8 px asks for 6.3 mm of travel
     let c = Calibration::nominal_c310();
     let (vel, slow) = (BodyVelocity::new(0.5, 0.0), BodyVelocity::new(0.05, 0.0));
-    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT };
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT, forward_m: 0.0 };
     let mut offis = Offis::new(OffisParams::default()).unwrap();
     let door = door_ahead(&c, vel);
     for _ in 0..2 {
@@ -377,7 +377,7 @@ fn a_pair_with_too_short_a_baseline_adds_nothing_to_the_window() {
 fn the_baseline_gate_scales_with_the_resolution() {
     // 1 cm of travel: 12.7 px at 1280x720 (counts), 3.2 px at 320x180 (does not)
     let vel = BodyVelocity::new(0.1, 0.0);
-    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT };
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT, forward_m: 0.0 };
     for (size, steps) in [((1280, 720), 1), ((320, 180), 0)] {
         let c = Calibration::nominal_c310().scaled_to(size.0, size.1);
         let mut offis = Offis::new(OffisParams::default()).unwrap();
@@ -391,7 +391,7 @@ fn step_filtered_holds_the_class_through_one_odd_pair_and_forgets_it_after_a_tur
     let c = Calibration::nominal_c310();
     let vel = BodyVelocity::new(0.5, 0.0);
     let (door, hidden) = (door_ahead(&c, vel), door_ahead_hidden(&c, vel));
-    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT };
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT, forward_m: 0.0 };
     let mut offis = Offis::new(OffisParams::default()).unwrap();
     for _ in 0..4 {
         assert_eq!(offis.step_filtered(&door, vel, DT, &c, ahead).unwrap().tpo.shape, TpoShape::Door);
@@ -404,11 +404,13 @@ fn step_filtered_holds_the_class_through_one_odd_pair_and_forgets_it_after_a_tur
     // standing still measures nothing and adds nothing: the evidence of the view still holds
     let still = offis.step_filtered(&door, BodyVelocity::ZERO, DT, &c, ahead).unwrap();
     assert_eq!((still.tpo.shape, offis.attributes().filtered.steps), (TpoShape::Door, 5));
-    assert_eq!(offis.attributes().decision.shape, TpoShape::None, "the pair alone measured nothing");
+    // the pair alone measured nothing: its profile is the carried one, the last pair's wall
+    let a = offis.attributes();
+    assert_eq!((a.decision.shape, a.carried_bins), (TpoShape::Wall, 16), "{:?}", a.features);
     assert_eq!(offis.step_filtered(&door, vel, DT, &c, ahead).unwrap().tpo.shape, TpoShape::Door);
     assert_eq!(offis.attributes().filtered.steps, 6);
     // after a turn of 0.3 rad the wall in view decides alone
-    let turned = temporal::Motion { yaw_rad: 0.3, dt: DT };
+    let turned = temporal::Motion { yaw_rad: 0.3, dt: DT, forward_m: 0.0 };
     let p = offis.step_filtered(&hidden, vel, DT, &c, turned).unwrap();
     assert_eq!((p.tpo.shape, offis.attributes().filtered.steps), (TpoShape::Wall, 1));
     // Offis::step is the pair alone, whatever came before
@@ -416,6 +418,44 @@ fn step_filtered_holds_the_class_through_one_odd_pair_and_forgets_it_after_a_tur
         offis.step_filtered(&door, vel, DT, &c, ahead).unwrap();
     }
     assert_eq!(offis.step(&hidden, vel, DT, &c).unwrap().tpo.shape, TpoShape::Wall);
+}
+
+#[test]
+fn a_turn_on_the_spot_sees_the_wall_through_the_carried_profile() {
+    let c = Calibration::nominal_c310();
+    let vel = BodyVelocity::new(0.5, 0.0);
+    let wall = door_ahead_hidden(&c, vel);
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT, forward_m: 0.0 };
+    let turn = 0.3;
+    let on_the_spot = temporal::Motion { yaw_rad: turn, dt: DT, forward_m: 0.0 };
+    for carry_m in [0.6, 0.0] {
+        let mut params = OffisParams::default();
+        params.temporal.carry_m = carry_m;
+        let mut offis = Offis::new(params).unwrap();
+        let mut d0 = None;
+        for _ in 0..3 {
+            let p = offis.step_filtered(&wall, vel, DT, &c, ahead).unwrap();
+            assert_eq!(p.tpo.shape, TpoShape::Wall);
+            d0 = p.tpo.distance_m;
+        }
+        // no translation, and a turn past the window's 0.25 rad: the window has forgotten the view
+        let p = offis.step_filtered(&wall, BodyVelocity::ZERO, DT, &c, on_the_spot).unwrap();
+        let a = offis.attributes();
+        assert_eq!(a.filtered.steps, 0);
+        if carry_m == 0.0 {
+            assert_eq!((p.tpo.shape, a.carried_bins), (TpoShape::None, 0), "nothing is carried when off");
+            continue;
+        }
+        // the points turned 0.3 rad to the right: the bins left of 0.47 − 0.3 rad stay empty
+        assert!((8..16).contains(&a.carried_bins), "{} bins carried", a.carried_bins);
+        assert_eq!(p.tpo.shape, TpoShape::Wall, "{:?}", a.features);
+        // closed form: the wall is d0 + mount x ahead of the robot's origin; the camera, turned
+        // about the origin, meets it along its axis at (D − mount x · cos θ) / cos θ
+        let (mx, d) = (c.mount.x_m, d0.unwrap() + c.mount.x_m);
+        let expect = (d - mx * turn.cos()) / turn.cos();
+        let got = p.tpo.distance_m.unwrap();
+        assert!((got - expect).abs() < 0.03, "wall at {got:.3} m along the turned axis, expected {expect:.3}");
+    }
 }
 
 #[test]

@@ -603,8 +603,8 @@ pub async fn run_with_camera<C: Camera>(
             let a = pipeline.offis().attributes();
             tracing::trace!(
                 target: "flownav::sim::frames",
-                "offis t={t_s:.3} pair_dt={:.3} foe={} bins_pts={} raw={:?} raw_conf={:.2} groups={:?} filt={:?} filt_steps={} filt_classes={:?} valid={} outliers={} feat={:?}",
-                o.dt, a.foe.is_some(), a.bins.iter().filter(|b| b.point.is_some()).count(), a.decision.shape, a.decision.confidence,
+                "offis t={t_s:.3} pair_dt={:.3} foe={} bins_pts={} carried={} planes={} raw={:?} raw_conf={:.2} groups={:?} filt={:?} filt_steps={} filt_classes={:?} valid={} outliers={} feat={:?}",
+                o.dt, a.foe.is_some(), a.bins.iter().filter(|b| b.point.is_some()).count(), a.carried_bins, a.model.planes().count(), a.decision.shape, a.decision.confidence,
                 a.decision.groups.map(|g| (g * 100.0).round() / 100.0), a.filtered.shape, a.filtered.steps,
                 a.filtered.classes.map(|g| (g * 100.0).round() / 100.0), a.valid, a.outliers, a.features
             );
