@@ -108,6 +108,9 @@ impl ProfileCarry {
     /// lies within the bin (between the midpoints to its neighbours' centres), then takes in
     /// this pair's own points. Returns how many bins were filled.
     pub fn fill_and_keep(&mut self, bins: &mut [Bin]) -> usize {
+        if self.limits.max_travel_m <= 0.0 {
+            return 0;
+        }
         let own = measured(bins);
         let filled = self.fill(bins);
         for (b, bin) in bins.iter().enumerate().take(64) {
@@ -243,6 +246,7 @@ mod tests {
         }
         let mut off = ProfileCarry::new(CarryLimits { max_travel_m: 0.0, ..LIMITS });
         off.fill_and_keep(&mut bins(&BEARINGS, 3.0, |_| true));
+        assert!(off.is_empty(), "nothing is kept when off");
         let mut empty = bins(&BEARINGS, 3.0, |_| false);
         assert_eq!(off.fill_and_keep(&mut empty), 0);
         assert!(empty.iter().all(|b| b.point.is_none()));
