@@ -638,6 +638,15 @@ impl TpoModel {
         self.lines.iter().flatten()
     }
 
+    /// Whether the profile `bins` this model was fitted to says anything about the TPO: a plane
+    /// was fitted, or fewer points than a plane needs lie within [`RANGE_M`] (nothing there).
+    /// Surfaces within range that fit no plane say only that their place is unknown (depth
+    /// noise at a low resolution scatters a wall's points), not that no TPO is there.
+    pub fn places(&self, bins: &[Bin]) -> bool {
+        let near = bins.iter().filter_map(|b| b.point).filter(|&p| range(p) <= RANGE_M).count();
+        self.planes().next().is_some() || near < MIN_PLANE_POINTS
+    }
+
     /// Whether bin `b` is an inlier of a plane.
     pub fn is_inlier(&self, b: usize) -> bool {
         self.planes().any(|l| l.inliers >> b & 1 == 1)
@@ -1094,6 +1103,27 @@ mod tests {
         let f = Features::compute(&bins, &TpoModel::fit(&bins));
         assert_eq!((f.planes, f.opposite), (2.0, 1.0), "{f:?}");
         assert!(f.side_angle_deg < 1.0 && f.pair_angle_deg < 1.0 && f.open_ahead_m == OPEN_AHEAD_MAX_M, "{f:?}");
+    }
+
+    #[test]
+    fn surfaces_within_range_that_fit_no_plane_place_nothing_a_wall_or_an_empty_view_does() {
+        // points scattered in depth (no three on a line within the fit's tolerance), and a lone
+        // 0.4 m box face: surfaces within range, no plane
+        for pts in [
+            vec![[1.6, 0.6], [3.4, 0.2], [2.0, -0.2], [3.8, -0.6], [1.2, 0.1]],
+            vec![[1.5, 0.2], [1.5, 0.07], [1.5, -0.07], [1.5, -0.2]],
+        ] {
+            let bins = bins_on(&pts);
+            let m = TpoModel::fit(&bins);
+            assert!(m.planes().next().is_none() && !m.places(&bins), "{pts:?}: {m:?}");
+        }
+        // a wall places; so do two points (too few for a plane) and points beyond RANGE_M only
+        let wall = bins_on(&(0..16).map(|k| [3.0, 1.4 - k as f64 * 0.19]).collect::<Vec<_>>());
+        let two = bins_on(&[[1.5, 0.2], [2.5, -0.3]]);
+        let far = bins_on(&[[6.0, 1.5], [7.5, 0.2], [6.2, -1.0], [9.0, -2.5]]);
+        for bins in [wall, two, far] {
+            assert!(TpoModel::fit(&bins).places(&bins), "{bins:?}");
+        }
     }
 
     #[test]

@@ -210,6 +210,8 @@ pub struct Offis {
     classifier: Classifier,
     filter: ClassFilter,
     carry: ProfileCarry,
+    /// A profile of carried points alone ([`Offis::carried_decision`]).
+    carried: Vec<Bin>,
     u: Vec<f64>,
     v: Vec<f64>,
     valid: Vec<bool>,
@@ -234,6 +236,7 @@ impl Offis {
         Ok(Self {
             filter: ClassFilter::new(params.temporal),
             carry: ProfileCarry::new(CarryLimits::from_temporal(&params.temporal)),
+            carried: Vec::new(),
             params,
             classifier,
             u: Vec::new(),
@@ -482,16 +485,24 @@ impl Offis {
         } else {
             Decision::default()
         };
-        // the decision over the last steps
+        // the decision over the last steps. A pair that located surfaces within range but fits
+        // no plane to them has not seen that no TPO is there, only not where (depth noise at a
+        // low resolution scatters a wall's points): it adds nothing, as a short pair does,
+        // instead of voting `none` against the pairs around it that name the TPO
+        let evidence = evidence && model.places(&bins);
         self.filter.advance(since);
+        let report = |d: &Decision| Filtered { shape: d.shape, confidence: d.confidence, classes: d.classes, steps: 0 };
         let filtered = match (evidence, self.filter.held()) {
             (true, _) => self.filter.push(&decision),
-            // the window has forgotten everything (turned or aged past its limits): what the
-            // carried points show, when the robot is not translating
-            (false, held) if held.steps == 0 && foe.is_none() && carried_bins > 0 => {
-                Filtered { shape: decision.shape, confidence: decision.confidence, classes: decision.classes, steps: 0 }
-            }
-            (false, held) => held,
+            (false, held) if held.steps > 0 => held,
+            // a step that measures nothing when the window has forgotten everything (turned or
+            // aged past its limits): what the carried points show; without translation they are
+            // this step's profile, a short pair's own points are left out
+            (false, _) if foe.is_none() && carried_bins > 0 => report(&decision),
+            (false, held) => match foe.is_some() && self.params.classifier == ClassifierKind::Flownav {
+                true => self.carried_decision(&bins)?.map_or(held, |d| report(&d)),
+                false => held,
+            },
         };
 
         // The obstacle: blocks clearly nearer than the TPO's surface in their bin, grouped into
@@ -583,6 +594,19 @@ impl Offis {
         };
         let tpo = Tpo { shape: filtered.shape, confidence: filtered.confidence, distance_m: tpo_distance };
         Ok(Perception { tpo, obstacle, rough, fine })
+    }
+
+    /// The flownav classifier's decision on a profile of carried points alone, with the
+    /// bearings of `bins` ([`carry`]); `None` when no carried point lies in view.
+    fn carried_decision(&mut self, bins: &[Bin]) -> Result<Option<Decision>, OffisError> {
+        self.carried.clear();
+        self.carried.extend(bins.iter().map(|b| Bin { point: None, bearing: b.bearing }));
+        if self.carry.fill(&mut self.carried) == 0 {
+            return Ok(None);
+        }
+        let model = TpoModel::fit(&self.carried);
+        let features = Features::compute(&self.carried, &model);
+        self.classifier.classify(&features).map(Some).map_err(OffisError::Classify)
     }
 
     /// Paper mode: the obstacle located by the zoom of Fig. 6 over the obstacle blocks

@@ -459,6 +459,28 @@ fn a_turn_on_the_spot_sees_the_wall_through_the_carried_profile() {
 }
 
 #[test]
+fn a_short_pair_after_a_turn_reports_the_carried_profile_not_its_own() {
+    // 5 mm of travel at 1280x720 (6.4 px) is below the 8 px gate: the pair measures nothing
+    let c = Calibration::nominal_c310();
+    let (vel, slow) = (BodyVelocity::new(0.5, 0.0), BodyVelocity::new(0.05, 0.0));
+    let ahead = temporal::Motion { yaw_rad: 0.0, dt: DT, forward_m: 0.0 };
+    let turned = temporal::Motion { yaw_rad: 0.3, dt: DT, forward_m: 0.0 };
+    for (carry_m, expect) in [(0.6, TpoShape::Wall), (0.0, TpoShape::None)] {
+        let mut params = OffisParams::default();
+        params.temporal.carry_m = carry_m;
+        let mut offis = Offis::new(params).unwrap();
+        for _ in 0..3 {
+            offis.step_filtered(&door_ahead_hidden(&c, vel), vel, DT, &c, ahead).unwrap();
+        }
+        // the short pair sees the door's opening; the window forgot the wall in the turn
+        let p = offis.step_filtered(&door_ahead(&c, slow), slow, DT, &c, turned).unwrap();
+        let a = offis.attributes();
+        assert_eq!((p.tpo.shape, a.filtered.steps), (expect, 0), "carry {carry_m}: {:?}", a.filtered);
+        assert_eq!(a.carried_bins, 0, "the short pair's own profile is not filled");
+    }
+}
+
+#[test]
 fn the_temporal_table_is_range_checked() {
     let ok = OffisParams::default();
     assert!(ok.validate().is_ok());
