@@ -469,10 +469,12 @@ impl Offis {
         // without translation the profile is all carried points (the robot standing or turning
         // on the spot, its odometry turn moving them); a short pair's own points are too noisy
         // to pass on, and its gaps are left open
+        let flownav = self.params.classifier == ClassifierKind::Flownav;
         let carried_bins = match (evidence, foe) {
             (true, _) => self.carry.fill_and_keep(&mut bins),
-            (false, None) => self.carry.fill(&mut bins),
-            (false, Some(_)) => 0,
+            // the paper classifier decides from the flow's structures, which need translation
+            (false, None) if flownav => self.carry.fill(&mut bins),
+            (false, _) => 0,
         };
         let model = TpoModel::fit(&bins);
         let features = Features::compute(&bins, &model);
@@ -499,7 +501,7 @@ impl Offis {
             // aged past its limits): what the carried points show; without translation they are
             // this step's profile, a short pair's own points are left out
             (false, _) if foe.is_none() && carried_bins > 0 => report(&decision),
-            (false, held) => match foe.is_some() && self.params.classifier == ClassifierKind::Flownav {
+            (false, held) => match foe.is_some() && flownav {
                 true => self.carried_decision(&bins)?.map_or(held, |d| report(&d)),
                 false => held,
             },

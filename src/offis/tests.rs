@@ -456,6 +456,14 @@ fn a_turn_on_the_spot_sees_the_wall_through_the_carried_profile() {
         let got = p.tpo.distance_m.unwrap();
         assert!((got - expect).abs() < 0.03, "wall at {got:.3} m along the turned axis, expected {expect:.3}");
     }
+    // the paper classifier decides from the flow's structures: nothing is decided on the spot
+    let params = OffisParams { classifier: ClassifierKind::Paper, ..OffisParams::default() };
+    let mut paper = Offis::new(params).unwrap();
+    for _ in 0..3 {
+        paper.step_filtered(&wall, vel, DT, &c, ahead).unwrap();
+    }
+    let p = paper.step_filtered(&wall, BodyVelocity::ZERO, DT, &c, on_the_spot).unwrap();
+    assert_eq!((p.tpo.shape, paper.attributes().carried_bins), (TpoShape::None, 0));
 }
 
 #[test]
