@@ -19,6 +19,7 @@
 
 use super::features::Bin;
 use super::temporal::Motion;
+use std::collections::VecDeque;
 
 /// Points held: 16 bins × 8 steps.
 const CAPACITY: usize = 128;
@@ -52,12 +53,12 @@ impl CarryLimits {
 #[derive(Clone, Debug)]
 pub struct ProfileCarry {
     limits: CarryLimits,
-    points: Vec<Carried>,
+    points: VecDeque<Carried>,
 }
 
 impl ProfileCarry {
     pub fn new(limits: CarryLimits) -> Self {
-        Self { limits, points: Vec::with_capacity(CAPACITY) }
+        Self { limits, points: VecDeque::with_capacity(CAPACITY) }
     }
 
     /// Forgets every point.
@@ -112,13 +113,13 @@ impl ProfileCarry {
             return 0;
         }
         let own = measured(bins);
-        let filled = self.fill(bins);
+        let filled = self.fill_gaps(bins, own);
         for (b, bin) in bins.iter().enumerate().take(64) {
             if let Some(point) = bin.point.filter(|_| own >> b & 1 == 1) {
                 if self.points.len() == CAPACITY {
-                    self.points.remove(0);
+                    self.points.pop_front();
                 }
-                self.points.push(Carried { point, turned_rad: 0.0, age_s: 0.0, travel_m: 0.0 });
+                self.points.push_back(Carried { point, turned_rad: 0.0, age_s: 0.0, travel_m: 0.0 });
             }
         }
         filled
@@ -127,9 +128,14 @@ impl ProfileCarry {
     /// Fills the empty bins as [`ProfileCarry::fill_and_keep`] does, taking nothing in.
     /// Returns how many bins were filled.
     pub fn fill(&self, bins: &mut [Bin]) -> usize {
-        if self.limits.max_travel_m <= 0.0 {
-            return 0;
+        match self.limits.max_travel_m > 0.0 {
+            true => self.fill_gaps(bins, measured(bins)),
+            false => 0,
         }
+    }
+
+    /// Fills the bins not in `own` (bit `b` = bin `b` holds its own point).
+    fn fill_gaps(&self, bins: &mut [Bin], own: u64) -> usize {
         let n = bins.len().min(64);
         let mut bearing = [0.0; 64];
         for (b, bin) in bearing.iter_mut().zip(bins.iter()) {
@@ -146,7 +152,6 @@ impl ProfileCarry {
                 },
             }
         };
-        let own = measured(bins);
         let mut filled = 0;
         for (b, bin) in bins.iter_mut().enumerate().take(n) {
             if own >> b & 1 == 1 {

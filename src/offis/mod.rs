@@ -501,10 +501,8 @@ impl Offis {
             // aged past its limits): what the carried points show; without translation they are
             // this step's profile, a short pair's own points are left out
             (false, _) if foe.is_none() && carried_bins > 0 => report(&decision),
-            (false, held) => match foe.is_some() && flownav {
-                true => self.carried_decision(&bins)?.map_or(held, |d| report(&d)),
-                false => held,
-            },
+            (false, held) if foe.is_some() && flownav => self.carried_decision(&bins)?.map_or(held, |d| report(&d)),
+            (false, held) => held,
         };
 
         // The obstacle: blocks clearly nearer than the TPO's surface in their bin, grouped into
