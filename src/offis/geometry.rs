@@ -249,7 +249,7 @@ impl Default for DepthParams {
             floor_height_m: 0.1,
             reliable_radial_px: 0.3,
             floor_rel: 0.6,
-            yaw_fix_max_rad: 0.0,
+            yaw_fix_max_rad: 0.005,
         }
     }
 }

@@ -527,6 +527,41 @@ fn the_flow_measures_the_odometrys_yaw_error() {
     assert_eq!(super::geometry::yaw_correction(&cam, BodyVelocity::new(0.0, 0.3), DT, blocks, &mut Vec::new()), None);
 }
 
+#[test]
+fn the_flow_takes_one_encoder_tick_of_turn_rate_out_of_the_depth() {
+    // A base that derives its turn rate from encoder ticks over 20 ms reports it in steps of one
+    // tick of difference between the wheels: 0.1 mm over a 0.33 m wheel base, 15 mrad/s, here
+    // 1.5 mrad over the pair (1.9 px at 1280 px wide). Driving 0.3 m/s while turning 0.1 rad/s
+    // past a wall 3 m ahead and the floor, the odometry says one such step too much.
+    let c = calib(0.1);
+    let truth = BodyVelocity::new(0.3, 0.1);
+    let scene =
+        Scene { rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()] };
+    let pair = scene.flow(&c, 16, 16, truth, DT);
+    let odo = BodyVelocity::new(0.3, 0.1 + 1e-4 / 0.33 / 0.02);
+    // the located points with the radial flow the obstacle memory takes (1.2 px), and how many
+    // of them lie within 15 % of their true range
+    let points = |yaw_fix_max_rad: f64| {
+        let depth = DepthParams { yaw_fix_max_rad, ..DepthParams::default() };
+        let mut offis = Offis::new(OffisParams { depth, ..OffisParams::default() }).unwrap();
+        offis.step(&pair.field, odo, DT, &c).unwrap();
+        let (mut n, mut good) = (0, 0);
+        for (l, t) in offis.located.iter().zip(&pair.truth) {
+            if let (Some(l), Some(t)) = (l, t)
+                && l.radial_px >= 1.2
+            {
+                n += 1;
+                good += usize::from((l.forward.hypot(l.left) / t[0].hypot(t[1]) - 1.0).abs() <= 0.15);
+            }
+        }
+        (good, n)
+    };
+    let (good, n) = points(DepthParams::default().yaw_fix_max_rad);
+    assert!(n >= 100 && good == n, "with the fix (the default): {good} of {n} within 15 %");
+    let (good, n) = points(0.0);
+    assert!(n >= 100 && 2 * good < n, "without the fix: {good} of {n} within 15 %");
+}
+
 fn run_paper(scene: &Scene, vel: BodyVelocity) -> (Perception, Attributes) {
     let c = calib(0.0);
     let pair = scene.flow(&c, 16, 16, vel, DT);
