@@ -33,6 +33,11 @@ fn door() -> Scene {
 }
 
 /// Fig. 8: a 2 m wide corridor with a box against its left wall, low in the view.
+/// A wall 3 m ahead, turned 0.4 rad, and the floor: the scene of the turning drives.
+fn wall_3m_and_floor() -> Scene {
+    Scene { rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()] }
+}
+
 fn corridor_with_box() -> Scene {
     Scene {
         rects: vec![
@@ -79,9 +84,7 @@ fn plane_plus_rotation_locates_every_point() {
     for pitch in [0.0, 0.15] {
         let c = calib(pitch);
         let vel = BodyVelocity::new(0.4, 0.3);
-        let scene = Scene {
-            rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()],
-        };
+        let scene = wall_3m_and_floor();
         let pair = scene.flow(&c, 16, 16, vel, DT);
         let cam = PinholeCamera::new(&c, 1280, 720);
         let m = FrameMotion::from_odometry(&cam, vel, DT);
@@ -511,9 +514,7 @@ fn the_flow_measures_the_odometrys_yaw_error() {
     // says the turn rate was off by ±0.02 rad/s (2 mrad over the pair, 0.7 px at 320 px wide)
     let c = calib(0.1);
     let truth = BodyVelocity::new(0.4, 0.3);
-    let scene =
-        Scene { rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()] };
-    let pair = scene.flow(&c, 16, 16, truth, DT);
+    let pair = wall_3m_and_floor().flow(&c, 16, 16, truth, DT);
     let cam = PinholeCamera::new(&c, 1280, 720);
     let blocks = || pair.field.vectors.iter().filter(|f| f.valid()).map(|f| [f.x, f.y, f.u, f.v].map(f64::from));
     for bias in [0.02, -0.02, 0.0] {
@@ -535,9 +536,7 @@ fn the_flow_takes_one_encoder_tick_of_turn_rate_out_of_the_depth() {
     // past a wall 3 m ahead and the floor, the odometry says one such step too much.
     let c = calib(0.1);
     let truth = BodyVelocity::new(0.3, 0.1);
-    let scene =
-        Scene { rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()] };
-    let pair = scene.flow(&c, 16, 16, truth, DT);
+    let pair = wall_3m_and_floor().flow(&c, 16, 16, truth, DT);
     let odo = BodyVelocity::new(0.3, 0.1 + 1e-4 / 0.33 / 0.02);
     // the located points with the radial flow the obstacle memory takes (1.2 px), and how many
     // of them lie within 15 % of their true range
