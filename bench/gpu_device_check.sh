@@ -40,8 +40,9 @@
 #   1. the flow_gpu test binary, --test-threads 8 (parity of both GPU paths with the CPU engine,
 #      bit-identical; it prints the adapter the tests ran on), once as built and once under each
 #      setting in $CHECK_ENVS (environment assignments, several separated by spaces, settings by
-#      ';'; default: the per-block kernel at 256 and 1024 invocations per workgroup, and the cost
-#      volume with its rows summed unpacked, FLOWNAV_GPU_CV_SWAR=0).
+#      ';'; default: the per-block kernel at 256 and 1024 invocations per workgroup, the cost
+#      volume with its rows summed unpacked, FLOWNAV_GPU_CV_SWAR=0, and with one dx per walk,
+#      FLOWNAV_GPU_CV_DQ=0).
 #      `cli_gpu_backend_runs_or_names_what_to_install` is skipped: it runs the `flownav` binary at
 #      the absolute path baked in at build time, which does not exist there.
 #   2. the benchmark (criterion, short: warm-up 1 s, measurement 2 s), groups
@@ -71,7 +72,7 @@ mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
 export FLOWNAV_DATA=${FLOWNAV_DATA:-$PWD/data}
 export RUST_BACKTRACE=1
 export CRITERION_HOME=${CRITERION_HOME:-/tmp/flownav-criterion}
-CHECK_ENVS=${CHECK_ENVS-"FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024;FLOWNAV_GPU_CV_SWAR=0"}
+CHECK_ENVS=${CHECK_ENVS-"FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024;FLOWNAV_GPU_CV_SWAR=0;FLOWNAV_GPU_CV_DQ=0"}
 VARIANTS=${VARIANTS-"FLOWNAV_GPU_WAIT=block;FLOWNAV_GPU_MATCH_WG=256;FLOWNAV_GPU_MATCH_WG=1024"}
 VARIANT_FILTER=${VARIANT_FILTER-'flow_gpu_720p/gpu(_stream_wait|_stream)?/default$'}
 status=0

@@ -92,7 +92,10 @@ impl Sized {
         let mut shapes = Vec::with_capacity(nlev);
         if let Some(plan) = &cv_plan {
             pipes.costvol(device, plan.shape)?;
-            let shape = MatchShape::precomputed(wg, p.block as u32, p.radius as u32, budget);
+            // FLOWNAV_GPU_REDUCE_WG sets the reductions' workgroup, for comparisons on a device
+            let env_wg = std::env::var("FLOWNAV_GPU_REDUCE_WG").ok().and_then(|v| v.parse::<u32>().ok());
+            let rwg = env_wg.unwrap_or(wg).clamp(1, max_wg);
+            let shape = MatchShape::precomputed(rwg, p.block as u32, p.radius as u32, budget);
             pipes.matcher(device, shape)?;
             shapes.push(shape);
         }

@@ -76,7 +76,7 @@ impl CostVolShape {
              const TC: u32 = {tc}u;\nconst TR: u32 = {tr}u;\nconst G: u32 = {g}u;\nconst RWM: u32 = {rwm}u;\n\
              const RWQ: u32 = {rwq}u;\nconst QS: bool = {qs};\nconst VW: u32 = {vw}u;\n\
              const VSN: u32 = {vsn}u;\nconst CST: u32 = {cst}u;\nconst RST: u32 = {rst}u;\n\
-             const ROWBASE: u32 = {rowbase}u;\nconst SWAR: bool = {swar};\n\
+             const ROWBASE: u32 = {rowbase}u;\nconst SWAR: bool = {swar};\nconst DQ: bool = {dq};\n\
              {common}{body}",
             wg = self.wg,
             bl = self.block,
@@ -94,6 +94,7 @@ impl CostVolShape {
             rst = cv_rst(self.tr),
             rowbase = self.rowbase,
             swar = std::env::var("FLOWNAV_GPU_CV_SWAR").as_deref() != Ok("0"),
+            dq = self.dx_quads,
             common = COMMON_WGSL,
             body = COSTVOL_WGSL,
         )

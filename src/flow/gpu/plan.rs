@@ -100,6 +100,9 @@ pub(super) struct CostVolShape {
     /// every block starts a whole number of quads after its tile region's start (all x origins
     /// congruent mod 4) and the block side is a multiple of 4.
     pub(super) quads: bool,
+    /// (With `quads`) each phase-1 walk takes 4 consecutive dx for its 4 columns: one word of
+    /// A and three of B per row serve 16 absolute differences (`costvol.wgsl`, `DQ`).
+    pub(super) dx_quads: bool,
     /// Offset of the row-tile table in the tile table.
     pub(super) rowbase: u32,
 }
@@ -114,11 +117,24 @@ fn cv_vw(rwm: u32, quads: bool) -> u32 {
     if quads { rwm.div_ceil(4) } else { rwm }
 }
 
+/// Phase-1 walks per dx group of `g`: one per (dx, quad of columns), or per (quad of dx, quad
+/// of columns) with `dx_quads`.
+fn cv_walks(g: u32, rwm: u32, dx_quads: bool) -> u32 {
+    if dx_quads { g.div_ceil(4) * rwm.div_ceil(4) } else { g * rwm.div_ceil(4) }
+}
+
 impl CostVolShape {
     /// Words of V per block row and dx (one per column, or per quad of 4 columns).
     pub(super) fn vw(&self) -> u32 {
         cv_vw(self.rwm, self.quads)
     }
+}
+
+/// Whether the cost volume's walks take 4 dx each where the column sums are kept per quad
+/// (`FLOWNAV_GPU_CV_DQ=0` or `FLOWNAV_GPU_CV_SWAR=0` turn it off, for comparisons on a device).
+pub(super) fn dx_quads_enabled() -> bool {
+    let off = |k: &str| std::env::var(k).as_deref() == Ok("0");
+    !off("FLOWNAV_GPU_CV_DQ") && !off("FLOWNAV_GPU_CV_SWAR")
 }
 
 /// The cost-volume path for one frame size: kernel shape, tile table and dispatch size.
@@ -142,15 +158,16 @@ fn cv_tiles(pos: &[u32], t: usize, block: u32) -> Vec<(u32, u32, usize)> {
 /// Plans the cost-volume path for blocks at `origins` (a `rows × cols` grid, single level), or
 /// `None` where it does not apply: origins not a product grid sorted along both axes, a
 /// window wider than 255 candidates, or no tile whose workgroup memory fits `budget`.
-/// `force` = (TC, TR, G) replaces the planner's choice (tests), still within `budget`.
+/// `force` = (TC, TR, G) replaces the planner's choice (tests), still within `budget`; `dx_quads`
+/// lets the walks take 4 dx each where the column sums are kept per quad.
 fn plan_cost_volume(
     origins: &[(usize, usize)],
     (rows, cols): (usize, usize),
-    block: usize,
-    radius: usize,
+    (block, radius): (usize, usize),
     wg: u32,
     budget: u32,
     force: Option<(u32, u32, u32)>,
+    dx_quads: bool,
 ) -> Option<CostVolPlan> {
     if rows == 0 || cols == 0 || origins.len() != rows * cols || 2 * radius + 1 > 255 || block == 0 {
         return None;
@@ -166,20 +183,27 @@ fn plan_cost_volume(
     }
     let (block, nd) = (block as u32, (2 * radius + 1) as u64);
     let quads = block.is_multiple_of(4) && xs.iter().all(|x| (x - xs[0]).is_multiple_of(4));
+    let dq = quads && dx_quads;
     let mut best: Option<(u64, CostVolShape)> = None;
     // The tiles in the order measured fastest on an H200 at 720p dense (docs/gpu.md): larger
     // tiles compute fewer absolute differences. The first whose largest dx group with one
-    // phase-1 round (G · ⌈RWM/4⌉ ≤ WG) fits `budget` with G ≥ 4 is taken, the groups balanced
-    // (G = ⌈ND / ⌈ND / G_max⌉⌉); if none does, the serial-step model below chooses.
+    // phase-1 round (G · ⌈RWM/4⌉ ≤ WG walks, ⌈G/4⌉ · ⌈RWM/4⌉ with quads of dx) fits `budget`
+    // with G ≥ 4 is taken, the groups balanced (G = ⌈ND / ⌈ND / G_max⌉⌉, in quads of dx with
+    // them); if none does, the serial-step model below chooses.
     if force.is_none() {
         for (tc, tr) in [(16u32, 8u32), (16, 16), (8, 8), (8, 4), (4, 4)] {
             let ct = cv_tiles(&xs, tc as usize, block);
             let rwm = ct.iter().map(|t| t.1).max()?;
             let by_budget = u64::from(budget) / (4 * u64::from(cv_vw(rwm, quads)) * u64::from(tr));
-            let gmax = by_budget.min(u64::from(wg / rwm.div_ceil(4))).min(nd);
+            let unit = if dq { 4 } else { 1 };
+            let per_walk = u64::from(rwm.div_ceil(4));
+            let gmax = by_budget.min(u64::from(wg) / per_walk * unit).min(nd.next_multiple_of(unit));
             if gmax >= 4.min(nd) && gmax >= 1 {
-                let g = nd.div_ceil(nd.div_ceil(gmax)) as u32;
-                best = Some((0, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, rowbase: 0 }));
+                let (n, m) = (nd.div_ceil(unit), gmax / unit);
+                let g = (n.div_ceil(n.div_ceil(m)) * unit).min(nd) as u32;
+                let shape =
+                    CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, dx_quads: dq, rowbase: 0 };
+                best = Some((0, shape));
                 break;
             }
         }
@@ -199,17 +223,23 @@ fn plan_cost_volume(
                 break;
             }
             let groups = nd.div_ceil(u64::from(g));
-            let rounds1 = u64::from(g * rwm.div_ceil(4)).div_ceil(u64::from(wg));
+            let rounds1 = u64::from(cv_walks(g, rwm, dq)).div_ceil(u64::from(wg));
             let rounds2 = u64::from(g * tr * tc).div_ceil(u64::from(wg));
             // Serial steps per workgroup (walks, block sums, barriers), times workgroups.
             let cost = ntiles * nd * groups * (rounds1 * rhm * 8 + rounds2 * u64::from(block) + 64);
             if best.is_none_or(|(c, _)| cost < c) {
-                best =
-                    Some((cost, CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, rowbase: 0 }));
+                let shape =
+                    CostVolShape { wg, block, radius: radius as u32, tc, tr, g, rwm, quads, dx_quads: dq, rowbase: 0 };
+                best = Some((cost, shape));
             }
         }
     }
     let (_, mut shape) = best?;
+    if dq {
+        // fewer walks than invocations with quads of dx: a workgroup of the walks, rounded up
+        // to whole warps, keeps more workgroups resident
+        shape.wg = shape.wg.min(cv_walks(shape.g, shape.rwm, true).next_multiple_of(32));
+    }
     let ct = cv_tiles(&xs, shape.tc as usize, block);
     let rt = cv_tiles(&ys, shape.tr as usize, block);
     shape.rowbase = ct.len() as u32 * CV_CST;
@@ -250,7 +280,7 @@ pub(super) fn device_plan(
         return None;
     }
     let budget = limits.max_compute_workgroup_storage_size;
-    let plan = plan_cost_volume(origins, grid, p.block, p.radius, wg, budget, choice.tile)?;
+    let plan = plan_cost_volume(origins, grid, (p.block, p.radius), wg, budget, choice.tile, dx_quads_enabled())?;
     let (rows, cols) = grid;
     let step = |pos: Vec<usize>| pos.windows(2).map(|w| w[1] - w[0]).max();
     let overlap = |s: Option<usize>| s.is_some_and(|s| p.block >= 2 * s.max(1));
@@ -356,8 +386,10 @@ mod tests {
             let b: Vec<u8> = (0..w * h).map(|_| rnd()).collect();
             // A small budget forces small groups; the planner must still cover everything.
             let forced = [Some((1, 1, 1)), Some((3, 5, 2)), Some((16, 2, 4))];
-            for (budget, force) in [(16384, None), (2048, None)].into_iter().chain(forced.map(|f| (16384, f))) {
-                let plan = plan_cost_volume(&origins, (rows, cols), block, radius, 256, budget, force).expect("plan");
+            let budgets = [(16384, None), (2048, None)].into_iter().chain(forced.map(|f| (16384, f)));
+            for ((budget, force), dq) in budgets.flat_map(|b| [(b, false), (b, true)]) {
+                let plan =
+                    plan_cost_volume(&origins, (rows, cols), (block, radius), 256, budget, force, dq).expect("plan");
                 let costs = simulate(&plan, &origins, cols, &a, &b, (w, h));
                 for (bi, &(ox, oy)) in origins.iter().enumerate() {
                     let win = crate::flow::cpu::Window::new(ox, oy, block, w, h, (0, 0), radius as i32);
@@ -387,15 +419,22 @@ mod tests {
     fn cost_volume_plan_at_720p_dense() {
         let p = FlowParams { stride: Some(8), ..FlowParams::default() };
         let origins = crate::flow::block_origins(&p, 1280, 720);
-        let plan = plan_cost_volume(&origins, (88, 160), 32, 16, 256, 49152, None).expect("plan");
+        let plan = plan_cost_volume(&origins, (88, 160), (32, 16), 256, 49152, None, false).expect("plan");
         eprintln!(
             "720p dense plan (48 KiB workgroup memory): {:?}, {} x {} tiles, {} absolute differences per pair",
             plan.shape, plan.ntc, plan.ntr, plan.abs_diffs
         );
         // 16 × 8 blocks (the fastest measured on an H200), V per quad of columns, 6 dx per group
         // (6 · 38 invocations walk in phase 1)
-        assert_eq!((plan.shape.tc, plan.shape.tr, plan.shape.g, plan.shape.quads), (16, 8, 6, true));
+        let s = plan.shape;
+        assert_eq!((s.tc, s.tr, s.g, s.quads, s.wg), (16, 8, 6, true, 256));
         // far below the per-block kernel's 14 080 · 1089 · 1024 = 15.7 G
         assert!(plan.abs_diffs < 2_500_000_000, "{}", plan.abs_diffs);
+        // with quads of dx: 9 quads of dx in two groups of at most 5 (5 · 38 = 190 walks, in
+        // workgroups of 192), the same tiles and absolute differences
+        let dq = plan_cost_volume(&origins, (88, 160), (32, 16), 256, 49152, None, true).expect("plan");
+        let s = dq.shape;
+        assert_eq!((s.tc, s.tr, s.g, s.dx_quads, s.wg), (16, 8, 20, true, 192));
+        assert_eq!(dq.abs_diffs, plan.abs_diffs);
     }
 }

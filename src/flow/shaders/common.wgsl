@@ -15,3 +15,10 @@ struct Lv {
 fn unpack(w: u32) -> vec4<u32> {
     return vec4<u32>(w & 255u, (w >> 8u) & 255u, (w >> 16u) & 255u, w >> 24u);
 }
+
+// Four pixels starting `sh` bits into `lo`, the rest from the next word `hi` (sh in 0, 8, 16,
+// 24). `hi` is shifted by 32 - sh in two steps so that sh = 0 takes nothing from it (a shift
+// by 32 would keep it whole): no branch, one expression for every alignment.
+fn funnel4(lo: u32, hi: u32, sh: u32) -> u32 {
+    return (lo >> sh) | ((hi << 1u) << (31u - sh));
+}

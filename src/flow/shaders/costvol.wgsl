@@ -30,7 +30,7 @@
 // group), RWM (widest tile region, px), RWQ (= ⌈RWM/4⌉), QS, VW (V words per block row and dx:
 // RWQ with QS, else RWM), VSN (= G·VW·TR), CST/RST (tile-table strides),
 // ROWBASE (offset of the row-tile table), SWAR (with QS, a row's 4 differences taken and
-// summed in place, `row_cost`; docs/gpu.md).
+// summed in place, `row_cost`; docs/gpu.md), DQ (with QS, walks of 4 dx, `walk_dx_quads`).
 //
 // Tile table `tiles` (u32): column tile tc at tc·CST: [X0, region width, valid columns];
 // row tile tr at ROWBASE + tr·RST: [Y0, region height, valid rows, n events, events...], each
@@ -103,6 +103,99 @@ fn row_cost(aw: u32, bw: u32) -> vec4<u32> {
     return max(a, b) - min(a, b);
 }
 
+// Phase 1 with quads of dx (DQ; QS holds): each invocation takes 4 adjacent columns and the 4
+// consecutive dx from g0 + 4·gq. Per row, one word of A (funnelled as in the walk above) and
+// the 3 words of B that hold the 7 pixels the 4 shifts need: t0 and t1 are B's 8 pixels from
+// the first dx's column, and the k-th dx reads the 4 of them from byte k, by constant shifts.
+// A dx past the group (G) or the window (ND) is walked but not stored.
+fn walk_dx_quads(g0: u32, x0t: u32, rw: u32, y0t: u32, rb: u32, rh: u32, nev: u32, dy: i32, tid: u32) {
+    let ones = 0x01010101u;
+    for (var it = tid; it < ((G + 3u) / 4u) * RWQ; it += WG) {
+        let gq = it / RWQ;
+        let xq = 4u * (it - gq * RWQ);
+        let dx0 = g0 + 4u * gq;
+        if xq >= rw || dx0 >= ND {
+            continue;
+        }
+        let ax = x0t + xq;
+        let bx = i32(ax) + i32(dx0) - i32(R);
+        let ws = i32(lv.ws);
+        let awx = ax >> 2u;
+        let ash = (ax & 3u) * 8u;
+        let a0 = awx < lv.ws;
+        let a1 = ash != 0u && awx + 1u < lv.ws;
+        let bwx = bx >> 2u;
+        let bsh = u32(bx & 3) * 8u;
+        let b0 = bwx >= 0 && bwx < ws;
+        let b1 = bwx + 1 >= 0 && bwx + 1 < ws;
+        let b2 = bwx + 2 >= 0 && bwx + 2 < ws;
+        var s = vec4<u32>(0u);
+        var y = 0u;
+        for (var e = 0u; e < nev; e++) {
+            let ev = tile(rb + 4u + e);
+            let ye = min(ev >> 12u, rh);
+            while y < ye {
+                let ay = y0t + y;
+                var alo = 0u;
+                var ahi = 0u;
+                if ay < lv.h {
+                    let ai = ay * lv.ws + awx;
+                    if a0 {
+                        alo = word_a(ai);
+                    }
+                    if a1 {
+                        ahi = word_a(ai + 1u);
+                    }
+                }
+                let aw = funnel(alo, ahi, ash);
+                let by = i32(ay) + dy;
+                var w0 = 0u;
+                var w1 = 0u;
+                var w2 = 0u;
+                if by >= 0 && by < i32(lv.h) {
+                    let bi = by * ws + bwx;
+                    if b0 {
+                        w0 = word_b(u32(bi));
+                    }
+                    if b1 {
+                        w1 = word_b(u32(bi + 1));
+                    }
+                    if b2 {
+                        w2 = word_b(u32(bi + 2));
+                    }
+                }
+                let t0 = funnel4(w0, w1, bsh);
+                let t1 = funnel4(w1, w2, bsh);
+                s.x += dot4U8Packed(absdiff_bytes(aw, t0), ones);
+                s.y += dot4U8Packed(absdiff_bytes(aw, (t0 >> 8u) | (t1 << 24u)), ones);
+                s.z += dot4U8Packed(absdiff_bytes(aw, (t0 >> 16u) | (t1 << 16u)), ones);
+                s.w += dot4U8Packed(absdiff_bytes(aw, (t0 >> 24u) | (t1 << 8u)), ones);
+                y++;
+            }
+            let r = (ev >> 1u) & 2047u;
+            let g = 4u * gq;
+            let i = (r * VW + (xq >> 2u)) * G + g;
+            let ok = r < TR;
+            put_v(i, ok, ev, s.x);
+            put_v(i + 1u, ok && g + 1u < G && dx0 + 1u < ND, ev, s.y);
+            put_v(i + 2u, ok && g + 2u < G && dx0 + 2u < ND, ev, s.z);
+            put_v(i + 3u, ok && g + 3u < G && dx0 + 3u < ND, ev, s.w);
+        }
+    }
+}
+
+// One column sum of V at index i (a block row's first row stores the running sum, its end
+// row the difference), where the dx exists (`ok`).
+fn put_v(i: u32, ok: bool, ev: u32, v: u32) {
+    if ok && i < VSN {
+        if (ev & 1u) == 0u {
+            vs[i] = v;
+        } else {
+            vs[i] = v - vs[i];
+        }
+    }
+}
+
 @compute @workgroup_size(WG, 1, 1)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) tid: u32) {
     let cb = wid.x * CST;
@@ -122,7 +215,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         // Phase 1: column sums of |A − B(· + d)| over each block row, per (dx, column); each
         // invocation takes 4 adjacent columns (one packed word of each frame per row). The
         // word columns and their validity are fixed per walk; per row only B's row is checked.
-        for (var it = tid; it < G * RWQ; it += WG) {
+        if DQ {
+            walk_dx_quads(g0, x0t, rw, y0t, rb, rh, nev, dy, tid);
+        }
+        for (var it = tid; it < select(G * RWQ, 0u, DQ); it += WG) {
             let g = it / RWQ;
             let xq = 4u * (it - g * RWQ);
             let dxi = g0 + g;

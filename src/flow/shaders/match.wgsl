@@ -11,7 +11,7 @@
 // texture energy and SSDs read the block of A and the (BL + 2)² patch of B around d1 from
 // workgroup memory (one pixel per word, loaded once) instead of global memory.
 
-// `Lv`, `lv` (binding 0) and `unpack` come from common.wgsl, which the Rust side prepends.
+// `Lv`, `lv` (binding 0), `unpack` and `funnel4` come from common.wgsl, which the Rust side prepends.
 @group(0) @binding(1) var<storage, read> hpa: array<u32>;
 @group(0) @binding(2) var<storage, read> hpb: array<u32>;
 @group(0) @binding(3) var<storage, read> orig: array<vec2<u32>>;
@@ -44,13 +44,6 @@ fn sad2(a: u32, b: u32) -> u32 {
     let ub = unpack(b);
     let d = max(ua, ub) - min(ua, ub);
     return d.x + d.y;
-}
-
-// Four pixels starting `sh` bits into `lo`, the rest from the next word `hi` (sh in 0, 8, 16,
-// 24). `hi` is shifted by 32 - sh in two steps so that sh = 0 takes nothing from it (a shift
-// by 32 would keep it whole): no branch, one expression for every alignment.
-fn funnel4(lo: u32, hi: u32, sh: u32) -> u32 {
-    return (lo >> sh) | ((hi << 1u) << (31u - sh));
 }
 
 // Four pixels of a frame starting at pixel (x, y), any alignment.
