@@ -77,6 +77,46 @@ fn word_b(i: u32) -> u32 {
     return 0u;
 }
 
+// Where a walk's 4 columns starting at pixel `ax` lie in frame A's rows: the word column, the
+// shift into it, and which of the two words read exist (inside the row's words).
+struct ACol {
+    wx: u32,
+    sh: u32,
+    lo: bool,
+    hi: bool,
+}
+
+fn a_col(ax: u32) -> ACol {
+    let wx = ax >> 2u;
+    let sh = (ax & 3u) * 8u;
+    return ACol(wx, sh, wx < lv.ws, sh != 0u && wx + 1u < lv.ws);
+}
+
+// The walk's 4 pixels of A in row `ay` (0 below the frame).
+fn a_row_word(c: ACol, ay: u32) -> u32 {
+    var lo = 0u;
+    var hi = 0u;
+    if ay < lv.h {
+        let i = ay * lv.ws + c.wx;
+        if c.lo {
+            lo = word_a(i);
+        }
+        if c.hi {
+            hi = word_a(i + 1u);
+        }
+    }
+    return funnel(lo, hi, c.sh);
+}
+
+// Word column `wx` of B's row `by` where `ok` (the column lies inside the row's words), else
+// 0, as outside the frame.
+fn b_word(by: i32, wx: i32, ok: bool) -> u32 {
+    if ok && by >= 0 && by < i32(lv.h) {
+        return word_b(u32(by * i32(lv.ws) + wx));
+    }
+    return 0u;
+}
+
 // |a − b| of each of the 4 bytes of two packed words, in place (SIMD within the register):
 // bit 7 of `ge` says a ≥ b per byte, from the top bits and a borrow-free subtraction of the low
 // seven; then max − min per byte, which cannot borrow across bytes.
@@ -104,7 +144,7 @@ fn row_cost(aw: u32, bw: u32) -> vec4<u32> {
 }
 
 // Phase 1 with quads of dx (DQ; QS holds): each invocation takes 4 adjacent columns and the 4
-// consecutive dx from g0 + 4·gq. Per row, one word of A (funnelled as in the walk above) and
+// consecutive dx from g0 + 4·gq. Per row, one word of A (`a_row_word`) and
 // the 3 words of B that hold the 7 pixels the 4 shifts need: t0 and t1 are B's 8 pixels from
 // the first dx's column, and the k-th dx reads the 4 of them from byte k, by constant shifts.
 // A dx past the group (G) or the window (ND) is walked but not stored.
@@ -118,12 +158,9 @@ fn walk_dx_quads(g0: u32, x0t: u32, rw: u32, y0t: u32, rb: u32, rh: u32, nev: u3
             continue;
         }
         let ax = x0t + xq;
+        let ac = a_col(ax);
         let bx = i32(ax) + i32(dx0) - i32(R);
         let ws = i32(lv.ws);
-        let awx = ax >> 2u;
-        let ash = (ax & 3u) * 8u;
-        let a0 = awx < lv.ws;
-        let a1 = ash != 0u && awx + 1u < lv.ws;
         let bwx = bx >> 2u;
         let bsh = u32(bx & 3) * 8u;
         let b0 = bwx >= 0 && bwx < ws;
@@ -136,34 +173,11 @@ fn walk_dx_quads(g0: u32, x0t: u32, rw: u32, y0t: u32, rb: u32, rh: u32, nev: u3
             let ye = min(ev >> 12u, rh);
             while y < ye {
                 let ay = y0t + y;
-                var alo = 0u;
-                var ahi = 0u;
-                if ay < lv.h {
-                    let ai = ay * lv.ws + awx;
-                    if a0 {
-                        alo = word_a(ai);
-                    }
-                    if a1 {
-                        ahi = word_a(ai + 1u);
-                    }
-                }
-                let aw = funnel(alo, ahi, ash);
+                let aw = a_row_word(ac, ay);
                 let by = i32(ay) + dy;
-                var w0 = 0u;
-                var w1 = 0u;
-                var w2 = 0u;
-                if by >= 0 && by < i32(lv.h) {
-                    let bi = by * ws + bwx;
-                    if b0 {
-                        w0 = word_b(u32(bi));
-                    }
-                    if b1 {
-                        w1 = word_b(u32(bi + 1));
-                    }
-                    if b2 {
-                        w2 = word_b(u32(bi + 2));
-                    }
-                }
+                let w0 = b_word(by, bwx, b0);
+                let w1 = b_word(by, bwx + 1, b1);
+                let w2 = b_word(by, bwx + 2, b2);
                 let t0 = funnel4(w0, w1, bsh);
                 let t1 = funnel4(w1, w2, bsh);
                 s.x += dot4U8Packed(absdiff_bytes(aw, t0), ones);
@@ -224,12 +238,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             let dxi = g0 + g;
             if xq < rw && dxi < ND {
                 let ax = x0t + xq;
+                let ac = a_col(ax);
                 let bx = i32(ax) + i32(dxi) - i32(R);
                 let ws = i32(lv.ws);
-                let awx = ax >> 2u;
-                let ash = (ax & 3u) * 8u;
-                let a0 = awx < lv.ws;
-                let a1 = ash != 0u && awx + 1u < lv.ws;
                 let bwx = bx >> 2u;
                 let bsh = u32(bx & 3) * 8u;
                 let b0 = bwx >= 0 && bwx < ws;
@@ -241,31 +252,9 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
                     let ye = min(ev >> 12u, rh);
                     while y < ye {
                         let ay = y0t + y;
-                        var alo = 0u;
-                        var ahi = 0u;
-                        if ay < lv.h {
-                            let ai = ay * lv.ws + awx;
-                            if a0 {
-                                alo = word_a(ai);
-                            }
-                            if a1 {
-                                ahi = word_a(ai + 1u);
-                            }
-                        }
-                        let aw = funnel(alo, ahi, ash);
+                        let aw = a_row_word(ac, ay);
                         let by = i32(ay) + dy;
-                        var blo = 0u;
-                        var bhi = 0u;
-                        if by >= 0 && by < i32(lv.h) {
-                            let bi = u32(by * ws + bwx);
-                            if b0 {
-                                blo = word_b(bi);
-                            }
-                            if b1 {
-                                bhi = word_b(bi + 1u);
-                            }
-                        }
-                        let bw = funnel(blo, bhi, bsh);
+                        let bw = funnel(b_word(by, bwx, b0), b_word(by, bwx + 1, b1), bsh);
                         s += row_cost(aw, bw);
                         y++;
                     }
