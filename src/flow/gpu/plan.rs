@@ -198,7 +198,7 @@ fn plan_cost_volume(
             let unit = if dq { 4 } else { 1 };
             let per_walk = u64::from(rwm.div_ceil(4));
             let gmax = by_budget.min(u64::from(wg) / per_walk * unit).min(nd.next_multiple_of(unit));
-            if gmax >= 4.min(nd) && gmax >= 1 {
+            if gmax >= 4.min(nd) && gmax >= unit {
                 let (n, m) = (nd.div_ceil(unit), gmax / unit);
                 let g = (n.div_ceil(n.div_ceil(m)) * unit).min(nd) as u32;
                 let shape =
@@ -430,6 +430,11 @@ mod tests {
         assert_eq!((s.tc, s.tr, s.g, s.quads, s.wg), (16, 8, 6, true, 256));
         // far below the per-block kernel's 14 080 · 1089 · 1024 = 15.7 G
         assert!(plan.abs_diffs < 2_500_000_000, "{}", plan.abs_diffs);
+        // a window of 3 candidates per side with quads of dx: no group of 4 fits in the
+        // planner's first pass, and the serial-step model still plans it
+        let small = FlowParams { stride: Some(8), radius: 1, ..FlowParams::default() };
+        let o = crate::flow::block_origins(&small, 1280, 720);
+        assert!(plan_cost_volume(&o, (88, 160), (32, 1), 256, 49152, None, true).is_some());
         // with quads of dx: 9 quads of dx in two groups of at most 5 (5 · 38 = 190 walks, in
         // workgroups of 192), the same tiles and absolute differences
         let dq = plan_cost_volume(&origins, (88, 160), (32, 16), 256, 49152, None, true).expect("plan");
