@@ -32,12 +32,12 @@ fn door() -> Scene {
     }
 }
 
-/// Fig. 8: a 2 m wide corridor with a box against its left wall, low in the view.
 /// A wall 3 m ahead, turned 0.4 rad, and the floor: the scene of the turning drives.
 fn wall_3m_and_floor() -> Scene {
     Scene { rects: vec![Rect::vertical(3.0, 0.0, 0.4, [-10.0, -10.0, -10.0], [10.0, 10.0, 10.0]), Rect::floor()] }
 }
 
+/// Fig. 8: a 2 m wide corridor with a box against its left wall, low in the view.
 fn corridor_with_box() -> Scene {
     Scene {
         rects: vec![

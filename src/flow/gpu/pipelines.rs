@@ -3,7 +3,7 @@
 //! group layouts. Pipelines are compiled once per shape and cached.
 
 use super::context::gpu_err;
-use super::plan::{CV_CST, CostVolShape, MatchShape, cv_rst};
+use super::plan::{CV_CST, CostVolShape, MatchShape, cv_rst, swar_enabled};
 use crate::flow::FlowError;
 use std::collections::HashMap;
 
@@ -93,7 +93,7 @@ impl CostVolShape {
             cst = CV_CST,
             rst = cv_rst(self.tr),
             rowbase = self.rowbase,
-            swar = std::env::var("FLOWNAV_GPU_CV_SWAR").as_deref() != Ok("0"),
+            swar = swar_enabled(),
             dq = self.dx_quads,
             common = COMMON_WGSL,
             body = COSTVOL_WGSL,

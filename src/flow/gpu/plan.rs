@@ -133,8 +133,13 @@ impl CostVolShape {
 /// Whether the cost volume's walks take 4 dx each where the column sums are kept per quad
 /// (`FLOWNAV_GPU_CV_DQ=0` or `FLOWNAV_GPU_CV_SWAR=0` turn it off, for comparisons on a device).
 pub(super) fn dx_quads_enabled() -> bool {
-    let off = |k: &str| std::env::var(k).as_deref() == Ok("0");
-    !off("FLOWNAV_GPU_CV_DQ") && !off("FLOWNAV_GPU_CV_SWAR")
+    std::env::var("FLOWNAV_GPU_CV_DQ").as_deref() != Ok("0") && swar_enabled()
+}
+
+/// Whether the cost volume sums a row's 4 differences in place (`FLOWNAV_GPU_CV_SWAR=0` unpacks
+/// them, for comparisons on a device).
+pub(super) fn swar_enabled() -> bool {
+    std::env::var("FLOWNAV_GPU_CV_SWAR").as_deref() != Ok("0")
 }
 
 /// The cost-volume path for one frame size: kernel shape, tile table and dispatch size.
