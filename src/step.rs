@@ -28,10 +28,10 @@ use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
 use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::{Mofis, MofisError, MofisInput, MofisOutput, MofisStep, Route};
 use crate::odometry_calibration::{OdometryCalibration, OdometryParams};
-use crate::offis::features::TpoModel;
+use crate::offis::features::{self, Opening};
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
-use crate::offis::{Offis, OffisError};
+use crate::offis::{Attributes, Offis, OffisError};
 use crate::pafsis::{Goal, GoalStatus, Mission, Pafsis, PlanError, TopoMap, WallSighting};
 pub use crate::pairing::PairingParams;
 use crate::perception::{Obstacle, Perception};
@@ -355,7 +355,7 @@ impl Pipeline {
                 last_omega: Some(odometry.omega),
             };
         }
-        wall_sightings(&self.offis.attributes().model, [calib.mount.x_m, calib.mount.y_m], &mut self.walls);
+        wall_sightings(self.offis.attributes(), [calib.mount.x_m, calib.mount.y_m], &mut self.walls);
         let goal = self.navigator.goal(&perception, &self.walls, odometry, frame_dt);
         // the solid surface points, filtered as MOFIS's obstacle memory takes them in
         let (m, mp) = (&calib.mount, self.mofis.memory().params());
@@ -418,15 +418,25 @@ impl Pipeline {
     }
 }
 
-/// OFFIS's fitted planes as walls in the robot's frame, written into `out` (reused from frame
-/// to frame): the fit is made from the camera, which sits at the mount's offset from the
-/// robot's reference point.
-fn wall_sightings(model: &TpoModel, mount_m: [f64; 2], out: &mut Vec<WallSighting>) {
+/// OFFIS's fitted planes as walls in the robot's frame, with their openings, written into
+/// `out` (reused from frame to frame): the fit is made from the camera, which sits at the
+/// mount's offset from the robot's reference point.
+fn wall_sightings(attributes: &Attributes, mount_m: [f64; 2], out: &mut Vec<WallSighting>) {
+    let shift = |p: [f64; 2]| [p[0] + mount_m[0], p[1] + mount_m[1]];
+    let (model, bins) = (&attributes.model, &attributes.bins);
     out.clear();
-    out.extend(model.planes().map(|l| WallSighting {
-        point_m: [l.centre[0] + mount_m[0], l.centre[1] + mount_m[1]],
-        dir: l.dir,
-        length_m: l.extent[1] - l.extent[0],
+    out.extend(model.planes().map(|l| {
+        let mut found: Vec<Opening> = features::openings(bins, l, model.occluded).collect();
+        let range = |o: &Opening| {
+            let [a, b] = o.jambs_m;
+            (0.5 * (a[0] + b[0])).hypot(0.5 * (a[1] + b[1]))
+        };
+        found.sort_by(|a, b| range(a).total_cmp(&range(b)));
+        let mut openings = [None; 2];
+        for (slot, o) in openings.iter_mut().zip(&found) {
+            *slot = Some(o.jambs_m.map(shift));
+        }
+        WallSighting { point_m: shift(l.centre), dir: l.dir, length_m: l.extent[1] - l.extent[0], openings }
     }));
 }
 

@@ -2,7 +2,7 @@
 //! odometry, and MOFIS behaviour.
 
 use flownav::odometry_calibration::OdometryCalibration;
-use flownav::pafsis::map::wrap_angle;
+use flownav::pafsis::map::{Side, wrap_angle};
 use flownav::pafsis::{GoalStatus, LegKind, Mission, Pafsis, PafsisEvent, PafsisParams, TopoMap, WallSighting};
 use flownav::perception::{Obstacle, Perception, Tpo, TpoShape};
 use hal::BodyVelocity;
@@ -26,6 +26,9 @@ struct Walk {
     omega_bias: f64,
     /// Whether OFFIS fits the corridor's side walls (y = ±1 m) when they are in view.
     walls: bool,
+    /// The wall (y = +1 or −1 m) whose door openings (0.9 m wide, at [`DOOR_X`]) the fitted
+    /// side walls show; `None`: no openings.
+    openings_in: Option<f64>,
     /// Odometry reports this much turn per metre driven on top of the true one (unequal wheel
     /// radii), rad/m.
     bend_rad_m: f64,
@@ -59,6 +62,7 @@ impl Walk {
             landmarks: true,
             omega_bias: 0.0,
             walls: false,
+            openings_in: None,
             bend_rad_m: 0.0,
             flow_yaw: false,
             calibration: OdometryCalibration::default(),
@@ -86,7 +90,12 @@ impl Walk {
             .map(|wall_y| {
                 let (a, b) = (to_robot(self.x + ahead, wall_y), to_robot(self.x + 3.0 * ahead, wall_y));
                 let n = (b[0] - a[0]).hypot(b[1] - a[1]);
-                WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: n }
+                let mut openings = [None; 2];
+                let seen = DOOR_X.iter().filter(|&&x| (1.5..=2.5).contains(&((x - self.x) * ahead)));
+                for (slot, &x) in openings.iter_mut().zip(seen).filter(|_| self.openings_in == Some(wall_y)) {
+                    *slot = Some([to_robot(x + 0.45 * ahead, wall_y), to_robot(x - 0.45 * ahead, wall_y)]);
+                }
+                WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: n, openings }
             })
             .collect()
     }
@@ -183,7 +192,8 @@ fn office_plan_r9_to_d2() {
     assert_eq!(legs[1].to_string(), "follow the corridor 0.5 m passing 0 doors left, 0 right");
     assert!(matches!(legs[2].kind, LegKind::Turn));
     assert!((legs[2].heading_rad.abs() - std::f64::consts::PI).abs() < 1e-9);
-    assert_eq!(legs[3].to_string(), "follow the corridor 12.0 m passing 0 doors left, 1 right, stop at D2");
+    // D3 and D2 are the places the edges stop at; D8 and D7 face them across the corridor
+    assert_eq!(legs[3].to_string(), "follow the corridor 12.0 m passing 2 doors left, 1 right, stop at D2");
     assert!(matches!(legs[4].kind, LegKind::Turn));
     assert!((legs[4].heading_rad - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
 }
@@ -218,7 +228,45 @@ fn door_sightings_correct_bad_odometry() {
     assert_eq!(status, GoalStatus::Arrived);
     assert!(without.x < 8.5, "odometry alone overshoots D2 by 0.6 m (x = {:.2})", without.x);
     let missed = events.iter().filter(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })).count();
-    assert_eq!(missed, 2, "every door reported missing");
+    assert_eq!(missed, 2, "every door the edges stop at reported missing (D3, D2)");
+}
+
+#[test]
+fn doors_seen_in_the_side_wall_correct_the_progress_on_their_side_only() {
+    // Odometry over-reports distance by 5 % (or the map's lengths are 5 % short): alone, the
+    // robot stops 0.6 m before D2. OFFIS names no TPO; the fitted side walls show the doors'
+    // openings, D3 and D2 in the north wall (on the right, heading west) or D8 and D7 facing
+    // them in the south wall.
+    let walk = |openings_in| Walk {
+        odo_scale: 1.05,
+        landmarks: false,
+        walls: true,
+        openings_in,
+        ..Walk::new(21.0, -3.0, 90.0)
+    };
+    let matched = |events: &[PafsisEvent], side: Side| {
+        events.iter().filter(|e| matches!(e, PafsisEvent::DoorMatched { side: Some(s), .. } if *s == side)).count()
+    };
+    for (wall_y, side) in [(1.0, Side::Right), (-1.0, Side::Left)] {
+        let mut w = walk(Some(wall_y));
+        let (status, events) = w.run(&mut mission(&office(), "R9:D2"), 120.0);
+        assert_eq!(status, GoalStatus::Arrived);
+        assert_eq!(matched(&events, side), 2, "two doors matched on the {side:?}: {events:#?}");
+        assert!((w.x - 9.0).abs() < 0.25, "with the openings on the {side:?} stopped at x = {:.2}", w.x);
+    }
+
+    // A map that does not place the doors of the south wall: openings there match nothing.
+    let mut north_only = office();
+    for p in north_only.places.iter_mut().filter(|p| matches!(p.name.as_str(), "D6" | "D7" | "D8" | "D10")) {
+        p.position_m = None;
+    }
+    for openings_in in [Some(-1.0), None] {
+        let mut other = walk(openings_in);
+        let (status, events) = other.run(&mut mission(&north_only, "R9:D2"), 120.0);
+        assert_eq!(status, GoalStatus::Arrived);
+        assert_eq!(matched(&events, Side::Left) + matched(&events, Side::Right), 0, "{openings_in:?}: {events:#?}");
+        assert!(other.x > 9.45, "without openings on the doors' side stopped at x = {:.2}", other.x);
+    }
 }
 
 #[test]

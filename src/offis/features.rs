@@ -848,54 +848,78 @@ impl Features {
         any
     }
 
-    /// The widest gap (m) between consecutive inlier bins of one plane where some bin between
-    /// shows a surface clearly beyond the plane and none is nearer than it; and the bearings
-    /// `[right, left]` of the gap's edges.
+    /// The widest gap (m) among the planes' [`openings`], and the bearings `[right, left]` of
+    /// its edges.
     fn widest_gap(bins: &[Bin], planes: &[&Line], occluded: u64) -> (f64, Option<[f64; 2]>) {
         let mut best = (0.0, None);
         for l in planes {
-            let idx: Vec<usize> = (0..bins.len()).filter(|&b| l.inliers >> b & 1 == 1).collect();
-            for w in idx.windows(2) {
-                let (i, j) = (w[0], w[1]);
-                if j < i + 2 {
-                    continue;
-                }
-                let mut beyond = false;
-                let mut blocked = false;
-                for (k, bin) in bins.iter().enumerate().take(j).skip(i + 1) {
-                    let (Some(p), Some(h)) = (bin.point, l.hit(bin.bearing, 2.0)) else { continue };
-                    let near_occluder = |x: usize| x < 64 && occluded >> x & 1 == 1;
-                    if near_occluder(k) {
-                        // an obstacle in front of the opening hides it, does not close it
-                        continue;
-                    }
-                    let r = range(p);
-                    if near_occluder(k + 1) || (k > 0 && near_occluder(k - 1)) {
-                        // the occluder's outline: its flow mixes with what lies behind
-                        beyond |= r - h > (0.15 * h).max(0.4);
-                        continue;
-                    }
-                    beyond |= r - h > (0.15 * h).max(0.4);
-                    blocked |= clearly_nearer(r, h);
-                }
-                if !beyond || blocked {
-                    continue;
-                }
-                // the jambs lie between the flanking inliers and their neighbours in the gap
-                let edge = |a: usize, b: usize| 0.5 * (bins[a].bearing + bins[b].bearing);
-                let (ba, bb) = (edge(i, i + 1), edge(j - 1, j));
-                if let (Some(ra), Some(rb)) = (l.hit(ba, 2.0), l.hit(bb, 2.0)) {
-                    let pa = [ra * ba.cos(), ra * ba.sin()];
-                    let pb = [rb * bb.cos(), rb * bb.sin()];
-                    let width = (pa[0] - pb[0]).hypot(pa[1] - pb[1]);
-                    if width > best.0 {
-                        best = (width, Some([ba.min(bb), ba.max(bb)]));
-                    }
+            for o in openings(bins, l, occluded) {
+                if o.width_m() > best.0 {
+                    best = (o.width_m(), Some(o.bearings));
                 }
             }
         }
         best
     }
+}
+
+/// An opening in a plane: a stretch between two of its inlier bins where some bin shows a
+/// surface clearly beyond the plane and none is nearer than it (a door's opening, seen head-on
+/// or in a side wall).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Opening {
+    /// Where the jambs are on the plane, (forward, left) from the camera, m: the rays halfway
+    /// between the flanking inliers and their neighbours in the gap meet it there.
+    pub jambs_m: [[f64; 2]; 2],
+    /// Bearings `[right, left]` of the jambs, rad.
+    pub bearings: [f64; 2],
+}
+
+impl Opening {
+    /// Jamb to jamb, m.
+    pub fn width_m(&self) -> f64 {
+        let [a, b] = self.jambs_m;
+        (a[0] - b[0]).hypot(a[1] - b[1])
+    }
+}
+
+/// The openings of plane `line` among `bins` (left image column first), bins of `occluded`
+/// hiding, not closing, what lies behind them.
+pub fn openings<'a>(bins: &'a [Bin], line: &'a Line, occluded: u64) -> impl Iterator<Item = Opening> + 'a {
+    let idx: Vec<usize> = (0..bins.len()).filter(|&b| line.inliers >> b & 1 == 1).collect();
+    let near_occluder = move |x: usize| x < 64 && occluded >> x & 1 == 1;
+    (0..idx.len().saturating_sub(1)).filter_map(move |w| {
+        let (i, j) = (idx[w], idx[w + 1]);
+        if j < i + 2 {
+            return None;
+        }
+        let mut beyond = false;
+        let mut blocked = false;
+        for (k, bin) in bins.iter().enumerate().take(j).skip(i + 1) {
+            let (Some(p), Some(h)) = (bin.point, line.hit(bin.bearing, 2.0)) else { continue };
+            if near_occluder(k) {
+                // an obstacle in front of the opening hides it, does not close it
+                continue;
+            }
+            let r = range(p);
+            beyond |= r - h > (0.15 * h).max(0.4);
+            if near_occluder(k + 1) || (k > 0 && near_occluder(k - 1)) {
+                // the occluder's outline: its flow mixes with what lies behind
+                continue;
+            }
+            blocked |= clearly_nearer(r, h);
+        }
+        if !beyond || blocked {
+            return None;
+        }
+        // the jambs lie between the flanking inliers and their neighbours in the gap
+        let edge = |a: usize, b: usize| 0.5 * (bins[a].bearing + bins[b].bearing);
+        let (ba, bb) = (edge(i, i + 1), edge(j - 1, j));
+        let (ra, rb) = (line.hit(ba, 2.0)?, line.hit(bb, 2.0)?);
+        let (pa, pb) = ([ra * ba.cos(), ra * ba.sin()], [rb * bb.cos(), rb * bb.sin()]);
+        let (right, left) = if ba <= bb { (pa, pb) } else { (pb, pa) };
+        Some(Opening { jambs_m: [right, left], bearings: [ba.min(bb), ba.max(bb)] })
+    })
 }
 
 #[cfg(test)]
@@ -1088,6 +1112,41 @@ mod tests {
         let f = Features::compute(&bins, &m);
         assert!((0.8..1.3).contains(&f.gap_m), "{f:?}");
         assert!(f.open_ahead_m > 5.0 && (f.front_m - 3.0).abs() < 1e-6, "{f:?}");
+    }
+
+    #[test]
+    fn a_door_in_a_side_wall_is_an_opening_of_that_wall() {
+        // a corridor 2 m wide seen from its centre line: bins every 3.4° over ±26°; the left
+        // wall (y = 1) has a door from x = 2.6 m to 3.5 m with a room 3 m deep behind it
+        let (door, room_y) = (2.6..=3.5, 4.0);
+        let bins: Vec<Bin> = (0..16)
+            .map(|k| {
+                let b = (26.0 - k as f64 * 3.4_f64).to_radians();
+                let (s, c) = b.sin_cos();
+                let on_wall = |y: f64| [y / s * c, y];
+                let point = match b {
+                    b if b > 0.0 => {
+                        let p = on_wall(1.0);
+                        if door.contains(&p[0]) { on_wall(room_y) } else { p }
+                    }
+                    b if b < 0.0 => on_wall(-1.0),
+                    _ => [8.0, 0.0],
+                };
+                Bin { point: Some(point), bearing: b }
+            })
+            .collect();
+        let m = TpoModel::fit(&bins);
+        let left = m.planes().find(|l| l.side() > 0.5).expect("the left wall is fitted");
+        let found: Vec<Opening> = openings(&bins, left, m.occluded).collect();
+        assert_eq!(found.len(), 1, "{found:?}");
+        let [right, far] = found[0].jambs_m;
+        // the jambs lie halfway between the bins on either side of each edge: within one bin
+        assert!((right[1] - 1.0).abs() < 0.05 && (far[1] - 1.0).abs() < 0.05, "{found:?}");
+        assert!((right[0] - 3.5).abs() < 0.35 && (far[0] - 2.6).abs() < 0.35, "{found:?}");
+        assert!((0.5..1.3).contains(&found[0].width_m()), "{found:?}");
+        // the right wall has none
+        let other = m.planes().find(|l| l.side() < -0.5).expect("the right wall is fitted");
+        assert_eq!(openings(&bins, other, m.occluded).count(), 0);
     }
 
     #[test]

@@ -14,7 +14,7 @@
 
 use super::PafsisParams;
 use super::global::{Mission, Plan, PlanError, plan};
-use super::map::{Action, MapTolerance, Side, TopoMap, Until, wrap_angle};
+use super::map::{Action, MapTolerance, PlaceKind, Side, TopoMap, Until, wrap_angle};
 use super::walls::{self, WallGates, WallSighting};
 use crate::perception::{Perception, TpoShape};
 use hal::BodyVelocity;
@@ -42,6 +42,19 @@ const DOOR_MAX_OFF_AXIS_RAD: f64 = 0.15;
 /// While the matched door stays in view, each frame moves the progress this fraction of the way
 /// to where the frame's door distance puts it (about ten frames' average).
 const DOOR_TRACK_GAIN: f64 = 0.1;
+/// Openings in a side wall count as doors while their centre is at least this far to the side
+/// for each metre ahead (14°): nearer the view's axis, one profile bin (3.4° of the C310's
+/// view) moves a jamb along the wall by more than a third of a metre.
+const SIDE_DOOR_MIN_SLOPE: f64 = 0.25;
+/// An opening in a side wall this wide, jamb to jamb, is a door, m.
+const SIDE_DOOR_WIDTH_M: std::ops::RangeInclusive<f64> = 0.55..=1.1;
+/// ... in a wall whose fitted direction agrees with the estimated heading within this, rad:
+/// the openings of worse fits are off by twice as much.
+const SIDE_DOOR_WALL_GATE_RAD: f64 = 0.1;
+/// The first this many frames that see an expected door in a side wall place it (their median:
+/// one frame's opening is off by a quarter metre, and one mis-binned jamb by more); later
+/// frames pull the progress as a door seen ahead does ([`DOOR_TRACK_GAIN`]).
+const SIDE_DOOR_FIRST_FRAMES: usize = 5;
 /// The wall-ahead fix ([`Pafsis::wall_ahead`]) takes walls up to this far ahead: nearer, a
 /// frontal plane's distance from the flow is good to a few per cent.
 const WALL_AHEAD_MAX_RANGE_M: f64 = 3.0;
@@ -57,6 +70,9 @@ const WALL_AHEAD_GAIN: f64 = 0.25;
 /// ([`Pafsis::stop_ahead_m`]), rad.
 const STRAIGHT_ON_RAD: f64 = 0.05;
 
+/// Without the corridor's width, a door place this far from a leg's line is beside it, m.
+const DOOR_PLACE_MAX_OFFSET_M: f64 = 1.0;
+
 /// A door the robot expects to pass (or stop at) on a corridor leg.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ExpectedDoor {
@@ -65,6 +81,11 @@ pub struct ExpectedDoor {
     pub side: Option<Side>,
     /// Where it lies along the leg, m from the leg's start, when the map says so.
     pub at_m: Option<f64>,
+    /// Whether the door is only beside the leg (a door place the leg's edges do not stop at,
+    /// [`add_doors_beside`]): it is matched only where it is seen in a side wall, whose side
+    /// tells it from the door facing it.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub beside: bool,
 }
 
 /// What ends a corridor leg.
@@ -233,8 +254,9 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                     turned = true;
                 }
                 Action::FollowCorridor { length_m, doors_left, doors_right, until, width_m } => {
-                    let unnamed =
-                        |n: u32, side| (0..n).map(move |_| ExpectedDoor { name: None, side: Some(side), at_m: None });
+                    let unnamed = |n: u32, side| {
+                        (0..n).map(move |_| ExpectedDoor { name: None, side: Some(side), at_m: None, beside: false })
+                    };
                     let new_doors = unnamed(*doors_left, Side::Left).chain(unnamed(*doors_right, Side::Right));
                     let end = match until {
                         Until::Distance => LegEnd::Distance,
@@ -265,7 +287,12 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
                 }
                 Action::StopAtDoor { door, side } => {
                     if let Some(Leg { kind: LegKind::Corridor { length_m, doors, end }, .. }) = legs.last_mut() {
-                        doors.push(ExpectedDoor { name: Some(door.clone()), side: Some(*side), at_m: Some(*length_m) });
+                        doors.push(ExpectedDoor {
+                            name: Some(door.clone()),
+                            side: Some(*side),
+                            at_m: Some(*length_m),
+                            beside: false,
+                        });
                         *end = LegEnd::Door;
                     }
                 }
@@ -273,11 +300,47 @@ pub fn unroll(map: &TopoMap, plan: &Plan, start_heading_rad: f64) -> Vec<Leg> {
         }
     }
     for leg in &mut legs {
+        add_doors_beside(map, leg);
         if matches!(leg.kind, LegKind::Corridor { end: LegEnd::Distance, .. }) {
             leg.wall_beyond_m = door_wall_beyond(map, &leg.leads_to, leg.heading_rad);
         }
     }
     legs
+}
+
+/// The map's door places beside corridor leg `leg` that its actions do not name (doors on the
+/// far side, doors between the places it stops at), placed along it by their positions: each
+/// is one more landmark to correct the progress with (paper §2.2: doors on either side). Only
+/// where the map gives positions and every door the leg expects has a place along it; not the
+/// door the leg starts beside (the robot came out of it).
+fn add_doors_beside(map: &TopoMap, leg: &mut Leg) {
+    const MIN_ALONG_M: f64 = 0.5;
+    let Some(end) = leg.line_point_m else { return };
+    let half_width =
+        leg.lane.iter().filter_map(|p| p.width_m).fold(None, |m: Option<f64>, w| Some(m.map_or(w, |m: f64| m.max(w))));
+    let LegKind::Corridor { length_m, doors, end: leg_end } = &mut leg.kind else { return };
+    if doors.iter().any(|d| d.at_m.is_none()) {
+        return;
+    }
+    let half_width = half_width.map_or(DOOR_PLACE_MAX_OFFSET_M, |w| 0.5 * w);
+    let stop = if *leg_end == LegEnd::Door { doors.pop() } else { None };
+    let (s, c) = leg.heading_rad.sin_cos();
+    for p in map.places.iter().filter(|p| p.kind == PlaceKind::Door) {
+        let named = |d: &ExpectedDoor| d.name.as_deref() == Some(p.name.as_str());
+        let Some([x, y]) = p.position_m.filter(|_| p.name != leg.leads_to && !doors.iter().chain(&stop).any(named))
+        else {
+            continue;
+        };
+        let (dx, dy) = (x - end[0], y - end[1]);
+        let (at_m, left) = (*length_m + dx * c + dy * s, -dx * s + dy * c);
+        if at_m < MIN_ALONG_M || at_m > *length_m || left.abs() > half_width {
+            continue;
+        }
+        let side = if left > 0.0 { Side::Left } else { Side::Right };
+        doors.push(ExpectedDoor { name: Some(p.name.clone()), side: Some(side), at_m: Some(at_m), beside: true });
+    }
+    doors.sort_by(|a, b| a.at_m.unwrap_or(0.0).total_cmp(&b.at_m.unwrap_or(0.0)));
+    doors.extend(stop);
 }
 
 /// Where the map puts a door straight ahead of a robot that stops at `place` facing
@@ -325,10 +388,13 @@ pub enum PafsisEvent {
         leg: String,
     },
     /// A door sighting matched an expected door; `correction_m` moved the progress estimate.
+    /// `side` is where the door was seen: an opening in the left or right wall, or (`None`)
+    /// the door's wall ahead.
     DoorMatched {
         door: Option<String>,
         at_m: Option<f64>,
         correction_m: f64,
+        side: Option<Side>,
     },
     /// A wall or door seen straight ahead placed the end of leg `leg` ([`Leg::wall_beyond_m`]):
     /// first seen `distance_m` ahead, moving the progress by `correction_m` (later frames of
@@ -444,6 +510,11 @@ pub struct Pafsis {
     door_sighting_reported: bool,
     /// Expected position of the door matched in the current streak of door frames.
     tracking: Option<f64>,
+    /// The current leg's doors matched so far (bit `k` = door `k`).
+    matched_doors: u64,
+    /// A door of the current leg seen in a side wall but not yet matched, and the first
+    /// disagreements of its sightings with the estimate, m ([`SIDE_DOOR_FIRST_FRAMES`]).
+    side_door_first: Option<(usize, Vec<f64>)>,
     last_door_distance: Option<f64>,
     replans: u32,
     status: GoalStatus,
@@ -504,6 +575,8 @@ impl Pafsis {
             end_streak: 0,
             door_sighting_reported: false,
             tracking: None,
+            matched_doors: 0,
+            side_door_first: None,
             last_door_distance: None,
             replans: 0,
             status: GoalStatus::Active,
@@ -636,7 +709,6 @@ impl Pafsis {
         };
         let leg_heading = leg.heading_rad;
         let innovation = walls::innovation(&self.walls, heading_rel, lane, &WallGates::default());
-        self.walls.clear();
         let (heading_gain, lateral_gain) = (self.params.wall_heading_gain, self.params.wall_lateral_gain);
         let heading = innovation.heading_rad.filter(|_| heading_gain > 0.0).map(|d| heading_gain * d);
         let lateral = innovation.lateral_m.filter(|_| lateral_gain > 0.0).map(|d| lateral_gain * d);
@@ -706,9 +778,11 @@ impl Pafsis {
         if self.status != GoalStatus::Active {
             return Goal { velocity: 0.0, angle_rad: 0.0, status: self.status };
         }
+        self.side_doors();
         if hint.is_none() {
             self.correct_from_walls();
         }
+        self.walls.clear();
         self.observe(perception);
         if let (true, Some(d)) = (perception.obstacle.present, perception.obstacle.distance_m)
             && d.is_finite()
@@ -910,6 +984,84 @@ impl Pafsis {
         self.walls_ahead_matched
     }
 
+    /// Doors seen as openings in the side walls of the frame ([`Pafsis::observe_walls`]): each
+    /// opening of a door's width, on a wall that runs along the leg, up to
+    /// [`SIDE_DOOR_MIN_SLOPE`] off the view's axis, says where along the leg a door on that side is.
+    fn side_doors(&mut self) {
+        let Some(leg) = self.legs.get(self.leg) else { return };
+        let LegKind::Corridor { doors, .. } = &leg.kind else { return };
+        if doors.is_empty() || self.walls.is_empty() {
+            return;
+        }
+        // standing, the profile is the one carried from the last pairs that measured it
+        if self.speed_m_s.abs() < DRIFT_MIN_SPEED_M_S {
+            return;
+        }
+        let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
+        let (s, c) = heading_rel.sin_cos();
+        let gates = WallGates::default();
+        let mut seen: Vec<(Side, f64)> = Vec::new();
+        for w in &self.walls {
+            // a wall along the leg appears turned by minus the robot's heading against it
+            if w.length_m < gates.min_length_m || (-w.angle_rad() - heading_rel).abs() > SIDE_DOOR_WALL_GATE_RAD {
+                continue;
+            }
+            let side = if w.offset_m() >= 0.0 { Side::Left } else { Side::Right };
+            for [a, b] in w.openings.iter().flatten() {
+                let width = (a[0] - b[0]).hypot(a[1] - b[1]);
+                let [x, y] = [0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1])];
+                if SIDE_DOOR_WIDTH_M.contains(&width) && x > 0.0 && y.abs() >= SIDE_DOOR_MIN_SLOPE * x {
+                    // the opening's centre along the leg
+                    seen.push((side, self.along_m + c * x - s * y));
+                }
+            }
+        }
+        for (side, at) in seen {
+            self.side_door_sighted(side, at);
+        }
+    }
+
+    /// Matches a door seen in the `side` wall at `seen_at` along the leg with the nearest
+    /// expected door on that side within its gate: a door already matched pulls the progress
+    /// a little toward it; a new one is placed by the median of its first sightings.
+    fn side_door_sighted(&mut self, side: Side, seen_at: f64) {
+        let Some(Leg { kind: LegKind::Corridor { doors, .. }, .. }) = self.legs.get(self.leg) else {
+            return;
+        };
+        let nearest = doors
+            .iter()
+            .enumerate()
+            .filter(|(_, d)| d.side.is_none_or(|s| s == side))
+            .filter_map(|(k, d)| {
+                let innovation = d.at_m? - seen_at;
+                (innovation.abs() <= door_gate(&self.params, &self.map.tolerance, d.at_m)).then_some((k, innovation))
+            })
+            .min_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
+        let Some((k, innovation)) = nearest else { return };
+        if self.matched_doors >> k.min(63) & 1 == 1 {
+            if innovation.abs() <= self.params.landmark_gate_m {
+                self.along_m += DOOR_TRACK_GAIN * innovation;
+            }
+            return;
+        }
+        let first = match &mut self.side_door_first {
+            Some((door, first)) if *door == k => first,
+            slot => &mut slot.insert((k, Vec::new())).1,
+        };
+        first.push(innovation);
+        if first.len() < SIDE_DOOR_FIRST_FRAMES {
+            return;
+        }
+        first.sort_by(f64::total_cmp);
+        let correction = first[first.len() / 2];
+        self.side_door_first = None;
+        self.along_m += correction;
+        self.matched_doors |= 1 << k.min(63);
+        self.doors_sighted += 1;
+        let (door, at_m) = (doors[k].name.clone(), doors[k].at_m);
+        self.events.push(PafsisEvent::DoorMatched { door, at_m, correction_m: correction, side: Some(side) });
+    }
+
     /// Matches a door sighting `distance` ahead (if known) against the next expected doors.
     fn door_sighted(&mut self, distance: Option<f64>) {
         let Some(Leg { kind: LegKind::Corridor { doors, .. }, .. }) = self.legs.get(self.leg) else {
@@ -918,6 +1070,10 @@ impl Pafsis {
         let seen_at = distance.map(|d| self.along_m + d);
         let mut i = self.next_door;
         while let Some(door) = doors.get(i) {
+            if door.beside || self.matched_doors >> i.min(63) & 1 == 1 {
+                i += 1;
+                continue;
+            }
             let gate = door_gate(&self.params, &self.map.tolerance, door.at_m);
             let window_ok = match (door.at_m, seen_at) {
                 (Some(at), Some(e)) if e < at - gate => None,
@@ -934,7 +1090,10 @@ impl Pafsis {
                         _ => 0.0,
                     };
                     let (name, at_m) = (door.name.clone(), door.at_m);
-                    for missed in &doors[self.next_door..i] {
+                    for (k, missed) in doors.iter().enumerate().take(i).skip(self.next_door) {
+                        if missed.beside || self.matched_doors >> k.min(63) & 1 == 1 {
+                            continue;
+                        }
                         let what = describe_door(missed);
                         self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
                     }
@@ -942,7 +1101,13 @@ impl Pafsis {
                     self.tracking = at_m.filter(|_| seen_at.is_some());
                     self.next_door = i + 1;
                     self.doors_sighted += 1;
-                    self.events.push(PafsisEvent::DoorMatched { door: name, at_m, correction_m: correction });
+                    self.matched_doors |= 1 << i.min(63);
+                    self.events.push(PafsisEvent::DoorMatched {
+                        door: name,
+                        at_m,
+                        correction_m: correction,
+                        side: None,
+                    });
                     return;
                 }
             }
@@ -965,8 +1130,10 @@ impl Pafsis {
                 while let Some(d) = doors.get(self.next_door)
                     && d.at_m.is_some_and(|at| self.along_m > at + door_gate(&self.params, &self.map.tolerance, d.at_m))
                 {
-                    let what = describe_door(d);
-                    self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
+                    if !d.beside && self.matched_doors >> self.next_door.min(63) & 1 == 0 {
+                        let what = describe_door(d);
+                        self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
+                    }
                     self.next_door += 1;
                 }
                 match end {
@@ -974,7 +1141,10 @@ impl Pafsis {
                         let done = self.along_m >= *length_m;
                         if done {
                             // Arrived by odometry: whatever was still expected went unseen.
-                            for d in &doors[self.next_door.min(doors.len())..] {
+                            for (k, d) in doors.iter().enumerate().skip(self.next_door) {
+                                if d.beside || self.matched_doors >> k.min(63) & 1 == 1 {
+                                    continue;
+                                }
                                 let what = describe_door(d);
                                 self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
                             }
@@ -1016,6 +1186,8 @@ impl Pafsis {
         self.next_door = 0;
         self.doors_sighted = 0;
         self.tracking = None;
+        self.matched_doors = 0;
+        self.side_door_first = None;
         self.wall_ahead_seen = false;
         self.wall_ahead_first.clear();
         // A door already in view when the leg starts counts for the new leg.

@@ -205,8 +205,9 @@ impl fmt::Display for Action {
 pub struct Place {
     pub name: String,
     pub kind: PlaceKind,
-    /// Optional metric position `[x, y]` in the world frame, m (simulation and visualisation
-    /// only; the planner never needs it).
+    /// Optional metric position `[x, y]` in the world frame, m. Without positions the planner
+    /// works from the edges alone; with them it also keeps the robot on the corridor's line and
+    /// expects the door places beside a corridor leg as landmarks.
     #[serde(default)]
     pub position_m: Option<[f64; 2]>,
     /// Heading the robot has when a mission starts here, degrees in the map frame (+ = left of

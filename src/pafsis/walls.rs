@@ -24,6 +24,8 @@ pub struct WallSighting {
     pub dir: [f64; 2],
     /// How much of the wall the fit spans, m.
     pub length_m: f64,
+    /// Up to two openings in the wall (doors), nearest first: their jambs, right one first.
+    pub openings: [Option<[[f64; 2]; 2]>; 2],
 }
 
 impl WallSighting {
@@ -130,7 +132,7 @@ mod tests {
         let a = to_robot(1.0, y_wall);
         let b = to_robot(3.0, y_wall);
         let n = (b[0] - a[0]).hypot(b[1] - a[1]);
-        WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: 2.0 }
+        WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: 2.0, openings: [None; 2] }
     }
 
     #[test]
@@ -155,7 +157,7 @@ mod tests {
         short.length_m = 0.6;
         assert_eq!(innovation(&[short], 0.0, Some((0.0, 1.0)), &gates), WallInnovation::default());
         // A frontal wall (an end wall, a box face across the corridor) is no side wall.
-        let frontal = WallSighting { point_m: [2.0, 0.0], dir: [0.0, 1.0], length_m: 2.0 };
+        let frontal = WallSighting { point_m: [2.0, 0.0], dir: [0.0, 1.0], length_m: 2.0, openings: [None; 2] };
         assert_eq!(innovation(&[frontal], 0.0, None, &gates).heading_rad, None);
         // A wall 0.5 m nearer than the corridor's width puts it (a row of boxes): heading yes, offset no.
         let near = side_wall(0.0, 0.5, 1.0, true);
