@@ -55,6 +55,8 @@ const SIDE_DOOR_WALL_GATE_RAD: f64 = 0.1;
 /// one frame's opening is off by a quarter metre, and one mis-binned jamb by more); later
 /// frames pull the progress as a door seen ahead does ([`DOOR_TRACK_GAIN`]).
 const SIDE_DOOR_FIRST_FRAMES: usize = 5;
+/// Below this speed the side walls' openings are not taken, m/s.
+const SIDE_DOOR_MIN_SPEED_M_S: f64 = 0.1;
 /// The wall-ahead fix ([`Pafsis::wall_ahead`]) takes walls up to this far ahead: nearer, a
 /// frontal plane's distance from the flow is good to a few per cent.
 const WALL_AHEAD_MAX_RANGE_M: f64 = 3.0;
@@ -985,8 +987,9 @@ impl Pafsis {
     }
 
     /// Doors seen as openings in the side walls of the frame ([`Pafsis::observe_walls`]): each
-    /// opening of a door's width, on a wall that runs along the leg, up to
-    /// [`SIDE_DOOR_MIN_SLOPE`] off the view's axis, says where along the leg a door on that side is.
+    /// opening of a door's width ([`SIDE_DOOR_WIDTH_M`]), in a wall that runs along the leg,
+    /// far enough to the side for its distance ahead ([`SIDE_DOOR_MIN_SLOPE`]), says where
+    /// along the leg a door on that side is.
     fn side_doors(&mut self) {
         let Some(leg) = self.legs.get(self.leg) else { return };
         let LegKind::Corridor { doors, .. } = &leg.kind else { return };
@@ -994,7 +997,7 @@ impl Pafsis {
             return;
         }
         // standing, the profile is the one carried from the last pairs that measured it
-        if self.speed_m_s.abs() < DRIFT_MIN_SPEED_M_S {
+        if self.speed_m_s.abs() < SIDE_DOOR_MIN_SPEED_M_S {
             return;
         }
         let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
