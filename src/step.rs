@@ -28,7 +28,7 @@ use crate::flow::{self, BackendReport, FlowEngine, FlowError, FlowField};
 use crate::mofis::memory::ObstacleMemory;
 use crate::mofis::{Mofis, MofisError, MofisInput, MofisOutput, MofisStep, Route};
 use crate::odometry_calibration::{OdometryCalibration, OdometryParams};
-use crate::offis::features::{self, Opening};
+use crate::offis::features;
 use crate::offis::points::SurfacePoint;
 use crate::offis::temporal::Motion;
 use crate::offis::{Attributes, Offis, OffisError};
@@ -426,16 +426,21 @@ fn wall_sightings(attributes: &Attributes, mount_m: [f64; 2], out: &mut Vec<Wall
     let (model, bins) = (&attributes.model, &attributes.bins);
     out.clear();
     out.extend(model.planes().map(|l| {
-        let mut found: Vec<Opening> = features::openings(bins, l, model.occluded).collect();
-        let range = |o: &Opening| {
+        // the two nearest, nearest first
+        let mut openings: [Option<(f64, [[f64; 2]; 2])>; 2] = [None; 2];
+        for o in features::openings(bins, l, model.occluded) {
             let [a, b] = o.jambs_m;
-            (0.5 * (a[0] + b[0])).hypot(0.5 * (a[1] + b[1]))
-        };
-        found.sort_by(|a, b| range(a).total_cmp(&range(b)));
-        let mut openings = [None; 2];
-        for (slot, o) in openings.iter_mut().zip(&found) {
-            *slot = Some(o.jambs_m.map(shift));
+            let opening = (0.5 * (a[0] + b[0])).hypot(0.5 * (a[1] + b[1]));
+            let here = (opening, o.jambs_m.map(shift));
+            match openings {
+                [None, _] => openings[0] = Some(here),
+                [Some((r, _)), _] if opening < r => openings = [Some(here), openings[0]],
+                [_, None] => openings[1] = Some(here),
+                [_, Some((r, _))] if opening < r => openings[1] = Some(here),
+                _ => {}
+            }
         }
+        let openings = openings.map(|o| o.map(|(_, jambs)| jambs));
         WallSighting { point_m: shift(l.centre), dir: l.dir, length_m: l.extent[1] - l.extent[0], openings }
     }));
 }

@@ -886,11 +886,13 @@ impl Opening {
 /// The openings of plane `line` among `bins` (left image column first), bins of `occluded`
 /// hiding, not closing, what lies behind them.
 pub fn openings<'a>(bins: &'a [Bin], line: &'a Line, occluded: u64) -> impl Iterator<Item = Opening> + 'a {
-    let idx: Vec<usize> = (0..bins.len()).filter(|&b| line.inliers >> b & 1 == 1).collect();
     let near_occluder = move |x: usize| x < 64 && occluded >> x & 1 == 1;
-    (0..idx.len().saturating_sub(1)).filter_map(move |w| {
-        let (i, j) = (idx[w], idx[w + 1]);
-        if j < i + 2 {
+    let inliers = line.inliers;
+    // each inlier bin with the next one
+    (0..bins.len().min(64)).filter(move |&i| inliers >> i & 1 == 1).filter_map(move |i| {
+        let above = inliers >> i >> 1;
+        let j = i + 1 + above.trailing_zeros() as usize;
+        if above == 0 || j < i + 2 || j >= bins.len() {
             return None;
         }
         let mut beyond = false;

@@ -512,7 +512,7 @@ pub struct Pafsis {
     door_sighting_reported: bool,
     /// Expected position of the door matched in the current streak of door frames.
     tracking: Option<f64>,
-    /// The current leg's doors matched so far (bit `k` = door `k`).
+    /// The current leg's doors matched so far ([`door_bit`]).
     matched_doors: u64,
     /// A door of the current leg seen in a side wall but not yet matched, and the first
     /// disagreements of its sightings with the estimate, m ([`SIDE_DOOR_FIRST_FRAMES`]).
@@ -993,20 +993,18 @@ impl Pafsis {
     fn side_doors(&mut self) {
         let Some(leg) = self.legs.get(self.leg) else { return };
         let LegKind::Corridor { doors, .. } = &leg.kind else { return };
-        if doors.is_empty() || self.walls.is_empty() {
-            return;
-        }
         // standing, the profile is the one carried from the last pairs that measured it
-        if self.speed_m_s.abs() < SIDE_DOOR_MIN_SPEED_M_S {
+        if doors.is_empty() || self.speed_m_s.abs() < SIDE_DOOR_MIN_SPEED_M_S {
             return;
         }
         let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
         let (s, c) = heading_rel.sin_cos();
-        let gates = WallGates::default();
-        let mut seen: Vec<(Side, f64)> = Vec::new();
-        for w in &self.walls {
-            // a wall along the leg appears turned by minus the robot's heading against it
-            if w.length_m < gates.min_length_m || (-w.angle_rad() - heading_rel).abs() > SIDE_DOOR_WALL_GATE_RAD {
+        let (along, min_length_m) = (self.along_m, WallGates::default().min_length_m);
+        // every opening of the frame is placed from the same progress; the walls go back for
+        // the side-wall corrections after
+        let walls = std::mem::take(&mut self.walls);
+        for w in &walls {
+            if w.length_m < min_length_m || w.heading_disagreement(heading_rel).abs() > SIDE_DOOR_WALL_GATE_RAD {
                 continue;
             }
             let side = if w.offset_m() >= 0.0 { Side::Left } else { Side::Right };
@@ -1015,13 +1013,16 @@ impl Pafsis {
                 let [x, y] = [0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1])];
                 if SIDE_DOOR_WIDTH_M.contains(&width) && x > 0.0 && y.abs() >= SIDE_DOOR_MIN_SLOPE * x {
                     // the opening's centre along the leg
-                    seen.push((side, self.along_m + c * x - s * y));
+                    self.side_door_sighted(side, along + c * x - s * y);
                 }
             }
         }
-        for (side, at) in seen {
-            self.side_door_sighted(side, at);
-        }
+        self.walls = walls;
+    }
+
+    /// Whether door `k` of the current leg has been matched.
+    fn matched(&self, k: usize) -> bool {
+        self.matched_doors & door_bit(k) != 0
     }
 
     /// Matches a door seen in the `side` wall at `seen_at` along the leg with the nearest
@@ -1041,7 +1042,7 @@ impl Pafsis {
             })
             .min_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
         let Some((k, innovation)) = nearest else { return };
-        if self.matched_doors >> k.min(63) & 1 == 1 {
+        if self.matched(k) {
             if innovation.abs() <= self.params.landmark_gate_m {
                 self.along_m += DOOR_TRACK_GAIN * innovation;
             }
@@ -1059,7 +1060,7 @@ impl Pafsis {
         let correction = first[first.len() / 2];
         self.side_door_first = None;
         self.along_m += correction;
-        self.matched_doors |= 1 << k.min(63);
+        self.matched_doors |= door_bit(k);
         self.doors_sighted += 1;
         let (door, at_m) = (doors[k].name.clone(), doors[k].at_m);
         self.events.push(PafsisEvent::DoorMatched { door, at_m, correction_m: correction, side: Some(side) });
@@ -1073,7 +1074,7 @@ impl Pafsis {
         let seen_at = distance.map(|d| self.along_m + d);
         let mut i = self.next_door;
         while let Some(door) = doors.get(i) {
-            if door.beside || self.matched_doors >> i.min(63) & 1 == 1 {
+            if door.beside || self.matched(i) {
                 i += 1;
                 continue;
             }
@@ -1094,7 +1095,7 @@ impl Pafsis {
                     };
                     let (name, at_m) = (door.name.clone(), door.at_m);
                     for (k, missed) in doors.iter().enumerate().take(i).skip(self.next_door) {
-                        if missed.beside || self.matched_doors >> k.min(63) & 1 == 1 {
+                        if missed.beside || self.matched(k) {
                             continue;
                         }
                         let what = describe_door(missed);
@@ -1104,7 +1105,7 @@ impl Pafsis {
                     self.tracking = at_m.filter(|_| seen_at.is_some());
                     self.next_door = i + 1;
                     self.doors_sighted += 1;
-                    self.matched_doors |= 1 << i.min(63);
+                    self.matched_doors |= door_bit(i);
                     self.events.push(PafsisEvent::DoorMatched {
                         door: name,
                         at_m,
@@ -1133,7 +1134,7 @@ impl Pafsis {
                 while let Some(d) = doors.get(self.next_door)
                     && d.at_m.is_some_and(|at| self.along_m > at + door_gate(&self.params, &self.map.tolerance, d.at_m))
                 {
-                    if !d.beside && self.matched_doors >> self.next_door.min(63) & 1 == 0 {
+                    if !d.beside && !self.matched(self.next_door) {
                         let what = describe_door(d);
                         self.events.push(PafsisEvent::LandmarkMissed { leg: self.leg, what });
                     }
@@ -1145,7 +1146,7 @@ impl Pafsis {
                         if done {
                             // Arrived by odometry: whatever was still expected went unseen.
                             for (k, d) in doors.iter().enumerate().skip(self.next_door) {
-                                if d.beside || self.matched_doors >> k.min(63) & 1 == 1 {
+                                if d.beside || self.matched(k) {
                                     continue;
                                 }
                                 let what = describe_door(d);
@@ -1311,6 +1312,11 @@ const DOOR_LOOKAHEAD_M: f64 = 0.6;
 /// How far from where the map puts it a door may be sighted and still match, m: the
 /// configured gate, or the map's tolerance where that is wider, which grows with the distance
 /// along the leg (a length off by a few percent).
+/// Door `k`'s bit among a leg's matched doors (legs with more than 64 doors share the last).
+fn door_bit(k: usize) -> u64 {
+    1 << k.min(63)
+}
+
 fn door_gate(params: &PafsisParams, tolerance: &MapTolerance, at_m: Option<f64>) -> f64 {
     at_m.map_or(params.landmark_gate_m, |at| params.landmark_gate_m.max(tolerance.window_m(at)))
 }

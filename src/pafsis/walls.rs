@@ -41,6 +41,13 @@ impl WallSighting {
         }
     }
 
+    /// How much the heading relative to the corridor that this wall says (a wall along the
+    /// corridor appears turned by minus the robot's heading against it) exceeds
+    /// `heading_rel_rad`, the estimate's, rad.
+    pub fn heading_disagreement(&self, heading_rel_rad: f64) -> f64 {
+        -self.angle_rad() - heading_rel_rad
+    }
+
     /// Signed distance from the robot to the wall's line, m: + when the wall is on the left.
     pub fn offset_m(&self) -> f64 {
         let [ux, uy] = self.dir;
@@ -90,9 +97,7 @@ pub fn innovation(
     let (mut heading_sum, mut heading_n) = (0.0, 0u32);
     let (mut lateral_sum, mut lateral_n) = (0.0, 0u32);
     for w in walls.iter().filter(|w| w.length_m >= gates.min_length_m) {
-        // A wall along the corridor appears turned by minus the robot's heading against it.
-        let measured = -w.angle_rad();
-        let d_heading = measured - heading_rel_rad;
+        let d_heading = w.heading_disagreement(heading_rel_rad);
         if d_heading.abs() > gates.heading_gate_rad {
             continue;
         }
