@@ -9,10 +9,13 @@
 //!   (1 + ambiguity_ratio) × the best full cost so far. Before the raster scan, the window
 //!   centre and the results of the left and upper neighbour blocks are evaluated, so the bound
 //!   is tight from the start (flow is smooth). Abandoned candidates provably cannot be the best,
-//!   tie with it, or be an ambiguity competitor, so the result equals the exhaustive search.
+//!   tie with it, or be an ambiguity competitor, so the result equals the exhaustive search;
+//! - before its SAD, each candidate's lower bound from 4×4 cell sums ([`super::sea`]) is
+//!   compared with the same limit, sixteen candidates at a time: most are abandoned there.
 
 use super::prefilter::{self, Scratch};
 use super::sad::{self, Kernel};
+use super::sea::{self, CellSums};
 use super::{FlowEngine, FlowError, FlowField, FlowParams, FlowVector, Validity};
 use hal::LumaImage;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -29,6 +32,9 @@ struct Level {
     raw_b: LumaImage,
     hp_a: LumaImage,
     hp_b: LumaImage,
+    /// The 4×4 cell sums of `hp_b`, for the SAD lower bound ([`super::sea`]); empty when the
+    /// level's block is not a multiple of 4 pixels.
+    cells_b: CellSums,
 }
 
 /// The CPU engine. Construct once, call [`FlowEngine::compute`] per frame pair; all buffers are
@@ -58,6 +64,8 @@ pub struct CpuFlow {
 #[derive(Debug, Default)]
 struct ThreadBufs {
     block_buf: Vec<u8>,
+    /// The cell sums of the block in `block_buf`.
+    block_cells: Vec<u16>,
     costs: Vec<u32>,
     out: RowsOut,
 }
@@ -215,6 +223,9 @@ impl FlowEngine for CpuFlow {
             };
             prefilter::highpass(src_a, p.prefilter_radius, &mut lev.hp_a, &mut self.scratch);
             prefilter::highpass(src_b, p.prefilter_radius, &mut lev.hp_b, &mut self.scratch);
+            if super::level_block(p.block, l).is_multiple_of(sea::CELL) {
+                lev.cells_b.compute(&lev.hp_b);
+            }
         }
 
         if self.origins_size != Some((w, h)) {
@@ -303,7 +314,7 @@ impl Sweeps {
         let (first, len, claimed) = &self.segments[t / 2];
         let down = t.is_multiple_of(2);
         let cols = job.cols;
-        let ThreadBufs { block_buf, costs, out } = bufs;
+        let ThreadBufs { block_buf, block_cells, costs, out } = bufs;
         out.clear();
         for k in 0..*len {
             if claimed.fetch_add(1, Ordering::Relaxed) >= *len {
@@ -325,7 +336,14 @@ impl Sweeps {
             } else {
                 None
             };
-            job.run(r, RowSlices { disp: row_disp, flags: row_flags, vectors }, adjacent, block_buf, costs);
+            job.run(
+                r,
+                RowSlices { disp: row_disp, flags: row_flags, vectors },
+                adjacent,
+                block_buf,
+                block_cells,
+                costs,
+            );
         }
     }
 }
@@ -348,6 +366,7 @@ impl LevelJob<'_> {
         row: RowSlices,
         adjacent: Option<&[(i32, i32)]>,
         block_buf: &mut Vec<u8>,
+        block_cells: &mut Vec<u16>,
         costs: &mut Vec<u32>,
     ) {
         let (p, lev, l, cols) = (self.params, self.lev, self.l, self.cols);
@@ -381,7 +400,13 @@ impl LevelJob<'_> {
             if let Some(adjacent) = adjacent {
                 preds[2] = Some(adjacent[c]);
             }
-            let query = Query { a: blk, b: &lev.hp_b, x0, y0, block: bl, win, preds, amb_q8 };
+            let cells = if lev.cells_b.width() > 0 && bl.is_multiple_of(sea::CELL) {
+                sea::block_cells(blk, bl, block_cells);
+                Some((&lev.cells_b, &block_cells[..]))
+            } else {
+                None
+            };
+            let query = Query { a: blk, b: &lev.hp_b, x0, y0, block: bl, win, preds, amb_q8, cells };
             let found = search(kernel, &query, costs);
             disp[c] = found.d;
             let flags = &mut row_flags[c];
@@ -608,6 +633,8 @@ pub(crate) struct Query<'a> {
     /// Displacements evaluated first to tighten the early-termination bound.
     pub preds: [Option<(i32, i32)>; 3],
     pub amb_q8: u64,
+    /// Frame B's cell sums and the block's, for the lower bound that skips candidates.
+    pub cells: Option<(&'a CellSums, &'a [u16])>,
 }
 
 /// Searches with the given kernel; see the module docs for why early termination gives the
@@ -619,8 +646,8 @@ fn search(kernel: Kernel, q: &Query, costs: &mut Vec<u32>) -> Found {
         #[cfg(target_arch = "x86_64")]
         Kernel::Avx2 => unsafe { search_avx2(q, costs) },
         #[cfg(target_arch = "x86_64")]
-        Kernel::Sse2 => search_with::<sad::Sse2Sad>(q, costs),
-        _ => search_with::<sad::ScalarSad>(q, costs),
+        Kernel::Sse2 => search_with::<sad::Sse2Sad, sea::ScalarBound>(q, costs),
+        _ => search_with::<sad::ScalarSad, sea::ScalarBound>(q, costs),
     }
 }
 
@@ -631,11 +658,11 @@ fn search(kernel: Kernel, q: &Query, costs: &mut Vec<u32>) -> Found {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn search_avx2(q: &Query, costs: &mut Vec<u32>) -> Found {
-    search_with::<sad::Avx2Sad>(q, costs)
+    search_with::<sad::Avx2Sad, sea::Avx2Bound>(q, costs)
 }
 
 #[inline(always)]
-fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
+fn search_with<S: sad::SadFn, L: sea::Bound16>(q: &Query, costs: &mut Vec<u32>) -> Found {
     let (a, b, x0, y0, block, win) = (q.a, q.b, q.x0, q.y0, q.block, &q.win);
     let stride = b.width();
     let data = b.data();
@@ -700,22 +727,50 @@ fn search_with<S: sad::SadFn>(q: &Query, costs: &mut Vec<u32>) -> Found {
         }
     }
     let mut limit = bound(best.0);
+    // Sixteen candidates of a row at a time are first tested against the cell-sum lower bound:
+    // those it rules out are abandoned without a SAD.
+    let n = block / sea::CELL;
     for dy in win.lo.1..=win.hi.1 {
         let row = (dy - win.lo.1) as usize * gw;
-        for dx in win.lo.0..=win.hi.0 {
-            let gi = row + (dx - win.lo.0) as usize;
-            if costs[gi] != PENDING {
-                continue;
-            }
-            match sad!((dx, dy), limit) {
-                Some(c) => {
-                    costs[gi] = c;
-                    note((dx, dy));
-                    consider((dx, dy), c, &mut best);
-                    limit = bound(best.0);
+        let mut dx = win.lo.0;
+        while dx <= win.hi.0 {
+            // The row's last group may be shorter. The bound of sixteen lanes costs about as
+            // much as a few candidates' SADs, so it is taken for a group of at least half that
+            // (the lanes past the window are ignored), where the cell sums extend that far.
+            let group = (win.hi.0 - dx + 1).min(16) as usize;
+            let over = match q.cells {
+                Some((sums, cells)) if group >= 8 => {
+                    let at = (y0 as i32 + dy) as usize * sums.width() + (x0 as i32 + dx) as usize;
+                    if at + 15 + (n - 1) * sea::CELL * (sums.width() + 1) < sums.data().len() {
+                        // SAFETY: every cell sum read lies in `sums` (checked just above); the
+                        // kernel's CPU features were checked with the SAD kernel's.
+                        unsafe { L::over16(sums.data(), sums.width(), at, cells, n, limit) }
+                    } else {
+                        0
+                    }
                 }
-                None => costs[gi] = ABANDONED,
+                _ => 0,
+            };
+            for k in 0..group {
+                let (gi, d) = (row + (dx - win.lo.0) as usize + k, (dx + k as i32, dy));
+                if costs[gi] != PENDING {
+                    continue;
+                }
+                if over & (1 << k) != 0 {
+                    costs[gi] = ABANDONED;
+                    continue;
+                }
+                match sad!(d, limit) {
+                    Some(c) => {
+                        costs[gi] = c;
+                        note(d);
+                        consider(d, c, &mut best);
+                        limit = bound(best.0);
+                    }
+                    None => costs[gi] = ABANDONED,
+                }
             }
+            dx += group as i32;
         }
     }
     let (c1, _, d1) = best;
@@ -789,15 +844,18 @@ mod tests {
         /// contract, on translated and on unrelated frames, with and without the pyramid.
         #[test]
         fn equals_reference(seed in any::<u64>(), dx in -9i64..=9, dy in -9i64..=9, k in 0usize..=4,
-                            levels in 1usize..=2, unrelated in any::<bool>(), amb in 0u32..3) {
+                            levels in 1usize..=2, unrelated in any::<bool>(), amb in 0u32..3, wide in any::<bool>()) {
+            // 32 px blocks take the AVX2 SAD and lower bound where the CPU has them, 16 px the
+            // SSE2 SAD and the portable bound.
+            let block = if wide { 32 } else { 16 };
             let params = FlowParams { prefilter_radius: k, pyramid_levels: levels, refine_radius: 2,
-                                      ambiguity_ratio: [0.0, 0.1, 0.5][amb as usize], ..small_params() };
+                                      ambiguity_ratio: [0.0, 0.1, 0.5][amb as usize], block, ..small_params() };
             let (a, mut b) = translated(96, 72, dx, dy, seed);
             if unrelated {
                 b = translated(96, 72, 0, 0, seed ^ 0x55).0;
             }
             let want = reference_flow(&params, &a, &b).unwrap();
-            for kernel in [Kernel::detect(16), Kernel::Scalar] {
+            for kernel in [Kernel::detect(block), Kernel::Scalar] {
                 let mut eng = CpuFlow::with_kernel(params.clone(), kernel);
                 let got = eng.compute(&a, &b).unwrap();
                 prop_assert_eq!(got, &want);

@@ -22,6 +22,7 @@ pub mod gpu;
 pub mod prefilter;
 pub mod reference;
 pub mod sad;
+pub mod sea;
 
 pub use backend::{BackendReport, create_engine};
 
