@@ -74,7 +74,8 @@ fn every_world_and_map_loads_and_each_map_matches_its_world() {
         let stem = path.file_stem().unwrap().to_string_lossy().into_owned();
         let Some(w) = worlds.iter().find(|p| p.file_stem().unwrap().to_string_lossy() == stem) else { continue };
         let w = World::load(w).unwrap();
-        let walls = World { boxes: vec![], cylinders: vec![], ..w.clone() };
+        let mut walls = w.clone();
+        (walls.boxes, walls.cylinders) = (vec![], vec![]);
         for p in &m.places {
             let Some(pos) = p.position_m else { continue };
             if let Some(q) = w.places.get(&p.name) {
@@ -183,7 +184,8 @@ const STEP_M: f64 = 0.05;
 impl Free {
     /// The grid over the box round `places` (with 1 m to spare).
     fn new(w: &World, places: &[[f64; 2]]) -> Free {
-        let walls_only = World { boxes: vec![], cylinders: vec![], ..w.clone() };
+        let mut walls_only = w.clone();
+        (walls_only.boxes, walls_only.cylinders) = (vec![], vec![]);
         let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
         for p in places {
             (x0, y0, x1, y1) = (x0.min(p[0]), y0.min(p[1]), x1.max(p[0]), y1.max(p[1]));

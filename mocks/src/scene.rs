@@ -33,6 +33,7 @@ impl Scene {
             places: BTreeMap::new(),
             start: Pose::default(),
             random: None,
+            low_faces: Default::default(),
         };
         Self { world, camera: Pose::default() }
     }

@@ -13,6 +13,7 @@ use hal::motion::wrap_angle;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::sync::OnceLock;
 use toml::Spanned;
 
 /// The built-in office world (`mocks/worlds/office.toml`), modelled on the paper's §5 experiment.
@@ -156,6 +157,22 @@ pub struct World {
     pub places: BTreeMap<String, [f64; 2]>,
     pub start: Pose,
     pub random: Option<RandomSpec>,
+    /// The faces [`World::clearance`] measures against, worked out on first use.
+    pub(crate) low_faces: LowFaces,
+}
+
+/// The wall faces reaching below 0.5 m, kept with the walls they were worked out from: the
+/// simulator asks for the clearance at every drive substep, and building the faces each time
+/// (allocations, a square root per segment) cost several percent of a run. A world whose
+/// walls were changed after the first use gets fresh faces. It is a cache, not part of the
+/// world: any two compare equal.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct LowFaces(OnceLock<(Vec<Wall>, Vec<Face>)>);
+
+impl PartialEq for LowFaces {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
 }
 
 /// What went wrong with a world.
@@ -314,6 +331,7 @@ impl World {
             places: raw.places.iter().map(|(k, v)| (k.clone(), *v.get_ref())).collect(),
             start: Pose::new(raw.start.x, raw.start.y, raw.start.yaw_deg.to_radians()),
             random: raw.random.as_ref().map(|r| r.get_ref().clone()),
+            low_faces: LowFaces::default(),
         };
         for w in &raw.walls {
             let w = w.get_ref();
@@ -598,7 +616,16 @@ impl World {
         }
         let p = [x, y];
         let (mut best, mut nearest) = (f64::INFINITY, Nearest::Nothing);
-        for f in self.faces().iter().filter(|f| f.z0 < 0.5) {
+        let low = || self.faces().into_iter().filter(|f| f.z0 < 0.5).collect::<Vec<_>>();
+        let cached = self.low_faces.0.get_or_init(|| (self.walls.clone(), low()));
+        let fresh;
+        let faces = if cached.0 == self.walls {
+            &cached.1
+        } else {
+            fresh = low();
+            &fresh
+        };
+        for f in faces {
             let d = point_segment_distance(p, f.a, f.b);
             if d < best {
                 (best, nearest) = (d, Nearest::Wall(f.wall));
@@ -961,6 +988,7 @@ mod tests {
             places: BTreeMap::new(),
             start: Pose::new(2.0, -2.0, 0.0),
             random: None,
+            low_faces: LowFaces::default(),
         };
         w.validate("t").unwrap();
         let f = w.faces();
@@ -968,6 +996,22 @@ mod tests {
         assert_eq!((f[0].a, f[0].b), ([0.0, 0.0], [1.5, 0.0]));
         assert_eq!((f[1].z0, f[1].z1), (2.0, 2.6));
         assert_eq!((f[2].a, f[2].b, f[2].along0), ([2.5, 0.0], [4.0, 0.0], 2.5));
+    }
+
+    #[test]
+    fn clearance_follows_walls_moved_after_its_first_use() {
+        let mut w = World::office();
+        let (x, y) = (w.start.x, w.start.y);
+        let before = w.clearance(x, y).distance_m;
+        // Every wall 0.1 m further along +y: the same question must now get a fresh answer.
+        for wall in &mut w.walls {
+            wall.points.iter_mut().for_each(|p| p[1] += 0.1);
+        }
+        let moved = w.clearance(x, y).distance_m;
+        let mut fresh = w.clone();
+        fresh.low_faces = LowFaces::default();
+        assert_eq!(moved, fresh.clearance(x, y).distance_m);
+        assert_ne!(moved, before);
     }
 
     #[test]
