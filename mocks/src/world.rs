@@ -164,10 +164,16 @@ pub struct World {
 /// The wall faces reaching below 0.5 m, kept with the walls they were worked out from: the
 /// simulator asks for the clearance at every drive substep, and building the faces each time
 /// (allocations, a square root per segment) cost several percent of a run. A world whose
-/// walls were changed after the first use gets fresh faces. It is a cache, not part of the
-/// world: any two compare equal.
-#[derive(Clone, Debug, Default)]
+/// walls were changed after the first use gets fresh faces, worked out again at every call (as
+/// before the cache). It is a cache, not part of the world: any two compare equal.
+#[derive(Clone, Default)]
 pub(crate) struct LowFaces(OnceLock<(Vec<Wall>, Vec<Face>)>);
+
+impl std::fmt::Debug for LowFaces {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("LowFaces")
+    }
+}
 
 impl PartialEq for LowFaces {
     fn eq(&self, _: &Self) -> bool {

@@ -7,7 +7,9 @@
 //! The cell sums of frame B are computed once per frame for every pixel position
 //! ([`CellSums::compute`]); a candidate's bound then reads one sum per cell instead of the
 //! cell's 16 pixels. On AVX2 the bound of 16 horizontally adjacent candidates is one 256-bit
-//! load, subtraction and saturating addition per cell.
+//! load, subtraction and saturating addition per cell. The sums are 16-bit and saturate, so
+//! the bound rules nothing out once the limit reaches 65,535 (blocks of 64 px, or a 32 px block
+//! whose best match is poor).
 //!
 //! On rendered frames with smooth motion the bound rules out most candidates before any SAD;
 //! on strongly textured frames with large motion, fewer.
@@ -24,7 +26,7 @@ pub const CELL: usize = 4;
 pub struct CellSums {
     sums: Vec<u16>,
     width: usize,
-    /// Horizontal 4-sums of one row (scratch).
+    /// Horizontal 4-sums of every row of the frame (scratch).
     rows: Vec<u16>,
 }
 
@@ -145,8 +147,8 @@ pub trait Bound16 {
     ///
     /// # Safety
     /// `sums` must hold more than `at + 15 + (n − 1)·CELL·(stride + 1)` entries; `cells` must
-    /// hold `n²` sums; the CPU must support the kernel's instructions (none beyond SSE2 for the
-    /// portable one).
+    /// hold `n²` sums; the CPU must support the kernel's instructions (the portable one needs
+    /// none).
     unsafe fn over16(sums: &[u16], stride: usize, at: usize, cells: &[u16], n: usize, limit: u32) -> u32;
 }
 
@@ -204,8 +206,8 @@ impl Bound16 for Avx2Bound {
             // per 16-bit lane; keep the even ones and pack them.
             let excess = _mm256_subs_epu16(acc, lim);
             let within = _mm256_cmpeq_epi16(excess, zero16);
-            // Words to bytes: per 128-bit half [w0..w7, w0..w7]; the two halves' first
-            // quadwords then hold the 16 lanes in order.
+            // Words to bytes: the halves become [w0..w7, w0..w7] and [w8..w15, w8..w15]; their
+            // first quadwords then hold the 16 lanes in order.
             let packed = _mm256_permute4x64_epi64::<0b11_01_10_00>(_mm256_packs_epi16(within, within));
             !(_mm256_movemask_epi8(packed) as u32) & 0xffff
         }
@@ -311,5 +313,11 @@ mod tests {
         assert_eq!(over(65_534), 0xffff);
         assert_eq!(over(65_535), 0);
         assert_eq!(over(200_000), 0);
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 checked just above; the 16 windows fit.
+            let avx2 = |limit| unsafe { Avx2Bound::over16(sums.data(), sums.width(), 0, &cells, 8, limit) };
+            assert_eq!((avx2(65_534), avx2(65_535), avx2(200_000)), (0xffff, 0, 0));
+        }
     }
 }
