@@ -26,7 +26,7 @@ pub const CELL: usize = 4;
 pub struct CellSums {
     sums: Vec<u16>,
     width: usize,
-    /// Horizontal 4-sums of every row of the frame (scratch).
+    /// Horizontal 4-sums of the last four rows, a ring (scratch).
     rows: Vec<u16>,
 }
 
@@ -43,24 +43,25 @@ impl CellSums {
         self.width = sw;
         // Every entry is written below: resizing only sets the length.
         self.sums.resize(sw * sh, 0);
-        self.rows.resize(sw * h, 0);
-        // Horizontal sums of every row, then each output row as four of them added.
+        self.rows.resize(CELL * sw, 0);
+        // The horizontal sums of each row go into a ring of four rows; once four are in, their
+        // sum is the output row that starts at the oldest.
         for y in 0..h {
             let src = img.row(y);
-            let dst = &mut self.rows[y * sw..(y + 1) * sw];
+            let dst = &mut self.rows[(y % CELL) * sw..(y % CELL + 1) * sw];
             // Four shifted slices rather than `windows`, so that the loop vectorises.
             let (s0, s1, s2, s3) = (&src[..sw], &src[1..sw + 1], &src[2..sw + 2], &src[3..sw + 3]);
             for (((d, &p0), (&p1, &p2)), &p3) in dst.iter_mut().zip(s0).zip(s1.iter().zip(s2)).zip(s3) {
                 *d = u16::from(p0) + u16::from(p1) + u16::from(p2) + u16::from(p3);
             }
-        }
-        for (y, out) in self.sums.chunks_exact_mut(sw).enumerate() {
-            let r = &self.rows[y * sw..(y + CELL) * sw];
-            let (r0, rest) = r.split_at(sw);
-            let (r1, rest) = rest.split_at(sw);
-            let (r2, r3) = rest.split_at(sw);
-            for ((o, (p0, p1)), (p2, p3)) in out.iter_mut().zip(r0.iter().zip(r1)).zip(r2.iter().zip(&r3[..sw])) {
-                *o = p0 + p1 + p2 + p3;
+            if y + 1 >= CELL {
+                let out = &mut self.sums[(y + 1 - CELL) * sw..(y + 2 - CELL) * sw];
+                let (r0, rest) = self.rows.split_at(sw);
+                let (r1, rest) = rest.split_at(sw);
+                let (r2, r3) = rest.split_at(sw);
+                for ((o, (p0, p1)), (p2, p3)) in out.iter_mut().zip(r0.iter().zip(r1)).zip(r2.iter().zip(r3)) {
+                    *o = p0 + p1 + p2 + p3;
+                }
             }
         }
     }
