@@ -400,7 +400,8 @@ impl LevelJob<'_> {
             if let Some(adjacent) = adjacent {
                 preds[2] = Some(adjacent[c]);
             }
-            let cells = if lev.cells_b.width() > 0 && bl.is_multiple_of(sea::CELL) {
+            // The sums exist only for levels whose block is a whole number of cells.
+            let cells = if lev.cells_b.width() > 0 {
                 sea::block_cells(blk, bl, block_cells);
                 Some((&lev.cells_b, &block_cells[..]))
             } else {
@@ -758,11 +759,11 @@ fn search_with<S: sad::SadFn, L: sea::Bound16>(q: &Query, costs: &mut Vec<u32>) 
             let group = (win.hi.0 - dx + 1).min(16) as usize;
             let over = match q.cells {
                 Some((sums, cells)) if group >= 8 => {
-                    let at = (y0 as i32 + dy) as usize * sums.width() + (x0 as i32 + dx) as usize;
-                    if at + 15 + (n - 1) * sea::CELL * (sums.width() + 1) < sums.data().len() {
+                    let at = sums.index((x0 as i32 + dx) as usize, (y0 as i32 + dy) as usize);
+                    if sums.holds16(at, n) {
                         // SAFETY: every cell sum read lies in `sums` (checked just above); the
                         // kernel's CPU features were checked with the SAD kernel's.
-                        unsafe { L::over16(sums.data(), sums.width(), at, cells, n, limit) }
+                        unsafe { L::over16(sums, at, cells, n, limit) }
                     } else {
                         0
                     }

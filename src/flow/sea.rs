@@ -66,6 +66,17 @@ impl CellSums {
         }
     }
 
+    /// Where the sum of the cell whose top-left pixel is `(x, y)` lies in [`CellSums::data`].
+    pub fn index(&self, x: usize, y: usize) -> usize {
+        y * self.width + x
+    }
+
+    /// Whether the sums hold every cell that [`Bound16::over16`] reads for sixteen candidates
+    /// from `at` with `n` × `n` cells.
+    pub fn holds16(&self, at: usize, n: usize) -> bool {
+        at + 15 + (n - 1) * CELL * (self.width + 1) < self.sums.len()
+    }
+
     /// Row stride of [`CellSums::data`].
     pub fn width(&self) -> usize {
         self.width
@@ -126,13 +137,13 @@ unsafe fn block_cells_avx2_32(a: *const u8, out: *mut u16) {
     }
 }
 
-/// The bound of one candidate whose window's top-left pixel is at `at` in `sums` (row stride
-/// `stride`), saturated at `u16::MAX` (still a lower bound of the SAD).
-pub fn bound_scalar(sums: &[u16], stride: usize, at: usize, cells: &[u16], n: usize) -> u16 {
+/// The bound of one candidate whose window's top-left pixel is at `at` in `sums`
+/// ([`CellSums::index`]), saturated at `u16::MAX` (still a lower bound of the SAD).
+pub fn bound_scalar(sums: &CellSums, at: usize, cells: &[u16], n: usize) -> u16 {
     let mut acc = 0u16;
     for cy in 0..n {
         for cx in 0..n {
-            let b = sums[at + cy * CELL * stride + cx * CELL];
+            let b = sums.sums[at + cy * CELL * sums.width + cx * CELL];
             acc = acc.saturating_add(b.abs_diff(cells[cy * n + cx]));
         }
     }
@@ -147,10 +158,9 @@ pub trait Bound16 {
     /// cannot exceed it).
     ///
     /// # Safety
-    /// `sums` must hold more than `at + 15 + (n − 1)·CELL·(stride + 1)` entries; `cells` must
-    /// hold `n²` sums; the CPU must support the kernel's instructions (the portable one needs
-    /// none).
-    unsafe fn over16(sums: &[u16], stride: usize, at: usize, cells: &[u16], n: usize, limit: u32) -> u32;
+    /// `sums.holds16(at, n)`; `cells` must hold `n²` sums; the CPU must support the kernel's
+    /// instructions (the portable one needs none).
+    unsafe fn over16(sums: &CellSums, at: usize, cells: &[u16], n: usize, limit: u32) -> u32;
 }
 
 /// The bound computed candidate by candidate.
@@ -158,13 +168,11 @@ pub struct ScalarBound;
 
 impl Bound16 for ScalarBound {
     #[inline(always)]
-    unsafe fn over16(sums: &[u16], stride: usize, at: usize, cells: &[u16], n: usize, limit: u32) -> u32 {
+    unsafe fn over16(sums: &CellSums, at: usize, cells: &[u16], n: usize, limit: u32) -> u32 {
         if limit >= u32::from(u16::MAX) {
             return 0;
         }
-        (0..16)
-            .filter(|&k| u32::from(bound_scalar(sums, stride, at + k, cells, n)) > limit)
-            .fold(0, |m, k| m | (1 << k))
+        (0..16).filter(|&k| u32::from(bound_scalar(sums, at + k, cells, n)) > limit).fold(0, |m, k| m | (1 << k))
     }
 }
 
@@ -175,16 +183,17 @@ pub struct Avx2Bound;
 #[cfg(target_arch = "x86_64")]
 impl Bound16 for Avx2Bound {
     #[inline(always)]
-    unsafe fn over16(sums: &[u16], stride: usize, at: usize, cells: &[u16], n: usize, limit: u32) -> u32 {
+    unsafe fn over16(sums: &CellSums, at: usize, cells: &[u16], n: usize, limit: u32) -> u32 {
         use std::arch::x86_64::*;
         if limit >= u32::from(u16::MAX) {
             return 0;
         }
-        debug_assert!(at + 15 + (n - 1) * CELL * (stride + 1) < sums.len() && cells.len() >= n * n);
+        debug_assert!(sums.holds16(at, n) && cells.len() >= n * n);
+        let stride = sums.width;
         // SAFETY (whole body): AVX2 is guaranteed by the caller; every 16-lane load starts at a
         // cell's sum and ends within `sums` (caller contract, checked above in debug builds).
         unsafe {
-            let base = sums.as_ptr().add(at);
+            let base = sums.sums.as_ptr().add(at);
             let lim = _mm256_set1_epi16(limit as u16 as i16);
             let ones = _mm256_set1_epi8(-1);
             let zero16 = _mm256_setzero_si256();
@@ -249,18 +258,18 @@ mod tests {
             let mut cells = Vec::new();
             block_cells(&a, block, &mut cells);
             let n = block / CELL;
-            let at = y * sums.width() + x;
+            let at = sums.index(x, y);
             for k in 0..16 {
-                let bound = bound_scalar(sums.data(), sums.width(), at + k, &cells, n);
+                let bound = bound_scalar(&sums, at + k, &cells, n);
                 let sad = sad_scalar(&a, b_img.data(), y * w + x + k, w, block, u32::MAX).unwrap();
                 prop_assert!(u32::from(bound) <= sad, "bound {} above the SAD {}", bound, sad);
             }
             // SAFETY: the portable kernel needs no CPU feature; the 16 windows fit in `sums`.
-            let scalar = unsafe { ScalarBound::over16(sums.data(), sums.width(), at, &cells, n, limit) };
+            let scalar = unsafe { ScalarBound::over16(&sums, at, &cells, n, limit) };
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx2") {
                 // SAFETY: AVX2 checked just above.
-                let avx2 = unsafe { Avx2Bound::over16(sums.data(), sums.width(), at, &cells, n, limit) };
+                let avx2 = unsafe { Avx2Bound::over16(&sums, at, &cells, n, limit) };
                 prop_assert_eq!(avx2, scalar);
             }
         }
@@ -309,7 +318,7 @@ mod tests {
         let mut cells = Vec::new();
         block_cells(&a, 32, &mut cells);
         // SAFETY: no CPU feature needed; the 16 windows fit.
-        let over = |limit| unsafe { ScalarBound::over16(sums.data(), sums.width(), 0, &cells, 8, limit) };
+        let over = |limit| unsafe { ScalarBound::over16(&sums, 0, &cells, 8, limit) };
         // The true SAD is 261,120; the bound saturates at 65,535.
         assert_eq!(over(65_534), 0xffff);
         assert_eq!(over(65_535), 0);
@@ -317,7 +326,7 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: AVX2 checked just above; the 16 windows fit.
-            let avx2 = |limit| unsafe { Avx2Bound::over16(sums.data(), sums.width(), 0, &cells, 8, limit) };
+            let avx2 = |limit| unsafe { Avx2Bound::over16(&sums, 0, &cells, 8, limit) };
             assert_eq!((avx2(65_534), avx2(65_535), avx2(200_000)), (0xffff, 0, 0));
         }
     }
