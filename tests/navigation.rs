@@ -612,6 +612,52 @@ fn doors_seen_obliquely_do_not_relocalise() {
     assert!((correction - 0.3).abs() < 0.01, "{correction}");
 }
 
+/// A door named ahead at ranges that jump from frame to frame (a plane fitted across an open
+/// corridor) does not move the progress; the same door at ranges that agree does, by their median.
+#[test]
+fn a_door_ahead_relocalises_only_when_its_frames_agree() {
+    let map = office();
+    let mut nav = mission(&map, "R9:D2");
+    let none = Perception::default();
+    let forward = BodyVelocity::new(0.2, 0.0);
+    while nav.progress().leg < 2 {
+        nav.step(&none, forward, 0.1);
+    }
+    while nav.progress().leg < 3 {
+        nav.step(&none, BodyVelocity::new(0.0, 0.5), 0.02);
+    }
+    // 2 m along the corridor leg; D3 is expected 6 m along it
+    for _ in 0..100 {
+        nav.step(&none, forward, 0.1);
+    }
+    nav.take_events();
+    let before = nav.progress().along_m;
+    let door = |d: f64| Perception {
+        tpo: Tpo { shape: TpoShape::Door, confidence: 0.9, distance_m: Some(d) },
+        ..Perception::default()
+    };
+    // no three frames in a row within 0.35 m of each other (and no jump up of a new door)
+    for d in [4.5, 4.0, 3.4, 3.8, 3.2, 3.6, 3.0] {
+        nav.step(&door(d), BodyVelocity::ZERO, 0.1);
+    }
+    let events = nav.take_events();
+    assert!(!events.iter().any(|e| matches!(e, PafsisEvent::DoorMatched { .. })), "{events:#?}");
+    assert_eq!(nav.progress().along_m, before, "progress untouched");
+    // three frames that agree within the gate: D3 placed by their median, 3.75 m ahead
+    for d in [3.8, 3.7, 3.75] {
+        nav.step(&door(d), BodyVelocity::ZERO, 0.1);
+    }
+    let events = nav.take_events();
+    let matched = events.iter().find_map(|e| match e {
+        PafsisEvent::DoorMatched { door, correction_m, .. } => Some((door.clone(), *correction_m)),
+        _ => None,
+    });
+    let (name, correction) = matched.expect("D3 matched");
+    assert_eq!(name.as_deref(), Some("D3"));
+    assert!((correction - (6.0 - (before + 3.75))).abs() < 1e-9, "{correction}");
+    assert!((nav.progress().along_m - 2.25).abs() < 0.01, "{}", nav.progress().along_m);
+}
+
 mod mofis {
     use super::*;
     use flownav::control::ControlLimits;

@@ -220,6 +220,7 @@ fn summary_json_starts_with_the_contract_fields() {
             cells_ghost: None,
             obstacles_held: Some(0.5),
             tpo_none_share: Some(0.1),
+            none_named_share: Some(0.02),
         },
     };
     let line = s.to_json_line();
@@ -234,6 +235,7 @@ fn summary_json_starts_with_the_contract_fields() {
     assert_eq!((v["points_range_ok"].as_f64(), v["cells_ghost"].is_null()), (Some(0.8), true), "flattened: {line}");
     assert_eq!(v["obstacles_held"].as_f64(), Some(0.5), "flattened: {line}");
     assert_eq!(v["tpo_none_share"].as_f64(), Some(0.1), "flattened: {line}");
+    assert_eq!(v["none_named_share"].as_f64(), Some(0.02), "flattened: {line}");
 }
 
 #[test]

@@ -21,9 +21,9 @@ use hal::BodyVelocity;
 use serde::Serialize;
 use std::fmt;
 
-/// Within a streak of door frames, a door distance that grows by more than this is a new door.
 /// Below this speed a lateral disagreement with the walls says nothing about the heading, m/s.
 const DRIFT_MIN_SPEED_M_S: f64 = 0.1;
+/// Within a streak of door frames, a door distance that grows by more than this is a new door.
 const NEW_DOOR_JUMP_M: f64 = 0.5;
 
 /// Something solid this near the heading, within `stop_distance_m`, is the end of a corner- or
@@ -42,6 +42,13 @@ const DOOR_MAX_OFF_AXIS_RAD: f64 = 0.15;
 /// While the matched door stays in view, each frame moves the progress this fraction of the way
 /// to where the frame's door distance puts it (about ten frames' average).
 const DOOR_TRACK_GAIN: f64 = 0.1;
+/// A door seen ahead is placed by the median of the last this many frames' distances once they
+/// agree within `landmark_gate_m` (the spread of the places they give along the leg), not by
+/// the first frame: one frame's door distance is off by 10–20 %, and a plane fitted across an
+/// open corridor (scattered depths of its far end) is named a door at a range that jumps by
+/// metres from frame to frame. One such frame moved the progress 0.76 m off, and the robot
+/// stopped that far from its goal.
+const DOOR_AHEAD_FIRST_FRAMES: usize = 3;
 /// Openings in a side wall count as doors while their centre is at least this far to the side
 /// for each metre ahead (14°): nearer the view's axis, one profile bin (3.4° of the C310's
 /// view) moves a jamb along the wall by more than a third of a metre.
@@ -518,6 +525,9 @@ pub struct Pafsis {
     /// disagreements of its sightings with the estimate, m ([`SIDE_DOOR_FIRST_FRAMES`]).
     side_door_first: Option<(usize, Vec<f64>)>,
     last_door_distance: Option<f64>,
+    /// Where the first frames of the current streak of door frames put the door along the leg,
+    /// m, until [`DOOR_AHEAD_FIRST_FRAMES`] of them agree ([`Pafsis::observe`]).
+    door_ahead_first: Vec<f64>,
     replans: u32,
     status: GoalStatus,
     events: Vec<PafsisEvent>,
@@ -580,6 +590,7 @@ impl Pafsis {
             matched_doors: 0,
             side_door_first: None,
             last_door_distance: None,
+            door_ahead_first: Vec::with_capacity(DOOR_AHEAD_FIRST_FRAMES + 1),
             replans: 0,
             status: GoalStatus::Active,
             events: Vec::new(),
@@ -861,6 +872,7 @@ impl Pafsis {
         } else {
             self.streak = (shape, 1);
             self.door_sighting_reported = false;
+            self.door_ahead_first.clear();
         }
         let stop = self.params.stop_distance_m;
         let end_ahead = (matches!(shape, TpoShape::Corner | TpoShape::Wall)
@@ -896,10 +908,26 @@ impl Pafsis {
         if let Some(d) = distance {
             self.last_door_distance = Some(d);
         }
+        if new_door {
+            self.door_ahead_first.clear();
+        }
         if !self.door_sighting_reported || new_door {
-            self.door_sighting_reported = true;
-            self.tracking = None;
-            self.door_sighted(distance);
+            match distance {
+                // without a distance the sighting says only that a door is passed
+                None if self.door_ahead_first.is_empty() => {
+                    self.door_sighting_reported = true;
+                    self.tracking = None;
+                    self.door_sighted(None);
+                }
+                None => {}
+                Some(d) => {
+                    if let Some(seen_at) = self.door_ahead_place(self.along_m + d) {
+                        self.door_sighting_reported = true;
+                        self.tracking = None;
+                        self.door_sighted(Some(seen_at));
+                    }
+                }
+            }
         } else if let (Some(at), Some(d)) = (self.tracking, distance) {
             // Still looking at the matched door: pull the progress toward what each frame says,
             // a little per frame (one frame's door distance is off by 10–20 %), and not at all
@@ -1066,12 +1094,31 @@ impl Pafsis {
         self.events.push(PafsisEvent::DoorMatched { door, at_m, correction_m: correction, side: Some(side) });
     }
 
-    /// Matches a door sighting `distance` ahead (if known) against the next expected doors.
-    fn door_sighted(&mut self, distance: Option<f64>) {
+    /// The place along the leg of the door seen ahead, from the current streak's frames: `seen_at`
+    /// is where this frame puts it; `Some` (their median) once the last
+    /// [`DOOR_AHEAD_FIRST_FRAMES`] places agree within `landmark_gate_m`.
+    fn door_ahead_place(&mut self, seen_at: f64) -> Option<f64> {
+        let first = &mut self.door_ahead_first;
+        if first.len() == DOOR_AHEAD_FIRST_FRAMES {
+            first.remove(0);
+        }
+        first.push(seen_at);
+        if first.len() < DOOR_AHEAD_FIRST_FRAMES {
+            return None;
+        }
+        let mut sorted = [0.0; DOOR_AHEAD_FIRST_FRAMES];
+        sorted.copy_from_slice(first);
+        sorted.sort_by(f64::total_cmp);
+        let spread = sorted[DOOR_AHEAD_FIRST_FRAMES - 1] - sorted[0];
+        (spread <= self.params.landmark_gate_m).then(|| sorted[DOOR_AHEAD_FIRST_FRAMES / 2])
+    }
+
+    /// Matches a door sighting against the next expected doors: `seen_at` is where along the
+    /// leg it puts the door, when its distance is known.
+    fn door_sighted(&mut self, seen_at: Option<f64>) {
         let Some(Leg { kind: LegKind::Corridor { doors, .. }, .. }) = self.legs.get(self.leg) else {
             return;
         };
-        let seen_at = distance.map(|d| self.along_m + d);
         let mut i = self.next_door;
         while let Some(door) = doors.get(i) {
             if door.beside || self.matched(i) {
@@ -1197,6 +1244,7 @@ impl Pafsis {
         // A door already in view when the leg starts counts for the new leg.
         self.door_sighting_reported = false;
         self.last_door_distance = None;
+        self.door_ahead_first.clear();
         match self.legs.get(index) {
             Some(leg) => self.events.push(PafsisEvent::LegStarted { index, leg: leg.to_string() }),
             None => self.arrive(),

@@ -589,9 +589,25 @@ pub async fn run_with_camera<C: Camera>(
                 .fold((f64::INFINITY, 0.0), |a, b| if b.0 < a.0 { b } else { a });
             let odo = odometry;
             let lane = pipeline.pafsis().and_then(crate::pafsis::Pafsis::lane);
+            // how much farther PAFSIS thinks the corridor leg's end is than it truly is, m
+            // (the map's place of the leg's end taken as true: exact maps only)
+            let to_go_err = pipeline.pafsis().map_or(f64::NAN, |nav| {
+                let p = nav.progress();
+                match nav.legs().get(p.leg) {
+                    Some(crate::pafsis::Leg {
+                        kind: crate::pafsis::LegKind::Corridor { length_m, .. },
+                        line_point_m: Some([ex, ey]),
+                        heading_rad,
+                        ..
+                    }) => {
+                        (length_m - p.along_m) - ((ex - pose.x) * heading_rad.cos() + (ey - pose.y) * heading_rad.sin())
+                    }
+                    _ => f64::NAN,
+                }
+            });
             tracing::trace!(
                 target: "flownav::sim::frames",
-                "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3} goal_a={:.3} steer_a={:.3} weight={:.2} avoid_turn={:.2} est_yaw={:.3} leg={} lane_left={:.3} lane_a={:.3} est_xy={:?}",
+                "frame t={t_s:.3} x={:.3} y={:.3} yaw={:.3} tpo={:?} true_tpo={:?} obs_d={:?} obs_b={:?} true_d={:?} true_b={:?} avoid_d={:?} avoid_b={:?} v={:.3} w={:.3} clear={clearance:.3} npts={} near={:.2}@{:.2} odo_v={:.3} odo_w={:.3} goal_a={:.3} steer_a={:.3} weight={:.2} avoid_turn={:.2} est_yaw={:.3} leg={} lane_left={:.3} lane_a={:.3} est_xy={:?} to_go_err={to_go_err:.3}",
                 pose.x, pose.y, pose.yaw, o.perception.tpo.shape, t.tpo.shape, ob.distance_m, ob.bearing_rad,
                 t.obstacle.distance_m, t.obstacle.bearing_rad, o.avoided.distance_m, o.avoided.bearing_rad, setpoint.v, setpoint.omega, pts.len(), near.0, near.1, odo.v, odo.omega,
                 o.goal.angle_rad, o.steered.angle_rad, o.mofis.weight, o.mofis.avoidance.turn, pipeline.pafsis().map_or(f64::NAN, |p| p.progress().heading_rad),

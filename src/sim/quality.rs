@@ -44,6 +44,8 @@ pub struct Quality {
     held: u64,
     tpo_truth: u64,
     tpo_none: u64,
+    none_truth: u64,
+    none_named: u64,
 }
 
 /// The fractions, for the JSON summary (`None` when nothing was scored).
@@ -59,6 +61,9 @@ pub struct QualitySummary {
     /// Steps whose ground truth is a TPO (wall, corner, door, corridor) in which OFFIS said
     /// `none`, as a share of those steps.
     pub tpo_none_share: Option<f64>,
+    /// Steps whose ground truth is `none` in which OFFIS named a TPO, as a share of those steps
+    /// (the price of holding a TPO through pairs that cannot see it).
+    pub none_named_share: Option<f64>,
 }
 
 impl Quality {
@@ -95,6 +100,9 @@ impl Quality {
         if truth_is_tpo {
             self.tpo_truth += 1;
             self.tpo_none += u64::from(said_none);
+        } else {
+            self.none_truth += 1;
+            self.none_named += u64::from(!said_none);
         }
     }
 
@@ -105,6 +113,7 @@ impl Quality {
             cells_ghost: frac(self.ghosts, self.cells),
             obstacles_held: frac(self.held, self.near),
             tpo_none_share: frac(self.tpo_none, self.tpo_truth),
+            none_named_share: frac(self.none_named, self.none_truth),
         }
     }
 }
@@ -146,7 +155,13 @@ mod tests {
         assert_eq!(s.cells_ghost, Some(0.5), "the cell in mid-corridor is a ghost: {s:?}");
         assert_eq!(
             Quality::default().summary(),
-            QualitySummary { points_range_ok: None, cells_ghost: None, obstacles_held: None, tpo_none_share: None }
+            QualitySummary {
+                points_range_ok: None,
+                cells_ghost: None,
+                obstacles_held: None,
+                tpo_none_share: None,
+                none_named_share: None
+            }
         );
     }
 
@@ -158,7 +173,9 @@ mod tests {
         q.observe_tpo(true, false);
         q.observe_tpo(true, false);
         q.observe_tpo(false, true);
+        q.observe_tpo(false, false);
         assert_eq!(q.summary().tpo_none_share, Some(0.25));
+        assert_eq!(q.summary().none_named_share, Some(0.5), "one of the two steps without a TPO named one");
     }
 
     #[test]
