@@ -8,6 +8,7 @@
 #   SEEDS=0..10 bench/nav_report.sh      # a quicker look
 #   OUT=/tmp/nav bench/nav_report.sh     # one file per set there (default: target/nav-report)
 #   SETS="lshape hall" bench/nav_report.sh   # some of: office lshape narrow hall office-map
+#   SIZE=320x180 bench/nav_report.sh     # another render size (default: the simulator's)
 set -eu
 cd "$(dirname "$0")/.."
 cargo build --release --quiet
@@ -21,7 +22,7 @@ sets="${SETS:-office lshape narrow hall office-map}"
 want() { case " $sets " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 run() { # NAME, then the flags of the set
     name="$1"; shift
-    "$bin" sim --seeds "$seeds" --jobs "$jobs" --no-log --quiet --start-error "$start" "$@" >"$out/$name.jsonl" || true
+    "$bin" sim --seeds "$seeds" --jobs "$jobs" --no-log --quiet --start-error "$start" ${SIZE:+--size "$SIZE"} "$@" >"$out/$name.jsonl" || true
     tail -n 1 "$out/$name.jsonl"
 }
 if want office; then run office --mission R9:D2; fi
