@@ -209,7 +209,19 @@ fn flownav() -> Command {
 #[test]
 fn sim_live_serves_the_camera_while_it_drives() {
     let mut child = flownav()
-        .args(["sim", "--live", "127.0.0.1:0", "--no-log", "--quiet", "--max-time", "30", "--fps", "10"])
+        .args([
+            "sim",
+            "--live",
+            "127.0.0.1:0",
+            "--no-log",
+            "--quiet",
+            "--max-time",
+            "30",
+            "--fps",
+            "10",
+            "--size",
+            "320x180",
+        ])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

@@ -313,7 +313,7 @@ fn parallel_seeds_print_the_same_summaries_in_seed_order() {
     let run = |jobs: &str| {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_flownav"))
             .args(["sim", "--world", world.to_str().unwrap(), "--map", map.to_str().unwrap(), "--mission", "A:B"])
-            .args(["--seeds", "3..6", "--jobs", jobs, "--max-time", "3", "--no-log", "--quiet"])
+            .args(["--seeds", "3..6", "--jobs", jobs, "--max-time", "3", "--size", "320x180", "--no-log", "--quiet"])
             .current_dir(env!("CARGO_MANIFEST_DIR"))
             .output()
             .expect("flownav runs");

@@ -190,7 +190,7 @@ async fn a_sim_killed_while_logging_leaves_a_readable_log() {
     let dir = tempfile::tempdir().unwrap();
     let logs = dir.path().join("logs");
     let mut child = flownav()
-        .args(["sim", "--quiet", "--max-time", "600", "--log"])
+        .args(["sim", "--quiet", "--size", "320x180", "--max-time", "600", "--log"])
         .arg(&logs)
         .stdout(Stdio::null())
         .stderr(Stdio::null())

@@ -51,7 +51,7 @@ pub struct Args {
     #[arg(long, default_value_t = 180.0, value_name = "S")]
     pub max_time: f64,
     /// Render size WxH (the calibration's intrinsics are scaled to it).
-    #[arg(long, value_name = "WxH", value_parser = |s: &str| super::parse_size(s, 64..=4096), default_value = "320x180")]
+    #[arg(long, value_name = "WxH", value_parser = |s: &str| super::parse_size(s, 64..=4096), default_value = "640x360")]
     pub size: (u32, u32),
     /// Pace the loop to the wall clock (default: as fast as possible).
     #[arg(long)]
