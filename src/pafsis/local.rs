@@ -42,12 +42,12 @@ const DOOR_MAX_OFF_AXIS_RAD: f64 = 0.15;
 /// While the matched door stays in view, each frame moves the progress this fraction of the way
 /// to where the frame's door distance puts it (about ten frames' average).
 const DOOR_TRACK_GAIN: f64 = 0.1;
-/// A door seen ahead is placed by the median of the last this many frames' distances once they
-/// agree within `landmark_gate_m` (the spread of the places they give along the leg), not by
-/// the first frame: one frame's door distance is off by 10–20 %, and a plane fitted across an
-/// open corridor (scattered depths of its far end) is named a door at a range that jumps by
-/// metres from frame to frame. One such frame moved the progress 0.76 m off, and the robot
-/// stopped that far from its goal.
+/// A door seen ahead is placed by the median of the places along the leg that the last this
+/// many frames give it, once they agree within `landmark_gate_m`, not by the first frame: one
+/// frame's door distance is off by 10–20 %, and a plane fitted across an open corridor (the
+/// scattered depths of its far end) is named a door at a range that jumps by metres from frame
+/// to frame. One such frame moved the progress 0.76 m back, and the robot stopped 0.94 m from
+/// its goal.
 const DOOR_AHEAD_FIRST_FRAMES: usize = 3;
 /// Openings in a side wall count as doors while their centre is at least this far to the side
 /// for each metre ahead (14°): nearer the view's axis, one profile bin (3.4° of the C310's
@@ -525,8 +525,8 @@ pub struct Pafsis {
     /// disagreements of its sightings with the estimate, m ([`SIDE_DOOR_FIRST_FRAMES`]).
     side_door_first: Option<(usize, Vec<f64>)>,
     last_door_distance: Option<f64>,
-    /// Where the first frames of the current streak of door frames put the door along the leg,
-    /// m, until [`DOOR_AHEAD_FIRST_FRAMES`] of them agree ([`Pafsis::observe`]).
+    /// Where the last frames of the current streak of door frames put the door along the leg,
+    /// m, until [`DOOR_AHEAD_FIRST_FRAMES`] of them agree ([`Pafsis::door_ahead_place`]).
     door_ahead_first: Vec<f64>,
     replans: u32,
     status: GoalStatus,
