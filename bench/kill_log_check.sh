@@ -16,7 +16,7 @@ WAIT="${1:-8}"
 "$PYTHON" -c 'import mcap' 2>/dev/null || { echo "no mcap module in $PYTHON: python3 -m venv /tmp/venv-mcap && /tmp/venv-mcap/bin/pip install 'mcap==1.*'" >&2; exit 2; }
 dir="$(mktemp -d)"
 trap 'rm -rf "$dir"' EXIT
-"$FLOWNAV" sim --quiet --max-time 600 --log "$dir" >/dev/null 2>&1 &
+"$FLOWNAV" sim --quiet --size 320x180 --max-time 600 --log "$dir" >/dev/null 2>&1 &
 pid=$!
 sleep "$WAIT"
 kill -KILL "$pid"

@@ -2,7 +2,7 @@
 # The closed-loop mission benchmark: mission R9:D2 in the built-in office, one run per
 # seed (random obstacle placement + sensor/encoder noise), release build, no logs. Prints one JSON
 # summary per seed, then the aggregate line (success rate, collisions, time, clearance, wall time,
-# realtime factor). Extra arguments go to `flownav sim` (e.g. --size 640x360, --max-time 120).
+# realtime factor). Extra arguments go to `flownav sim` (e.g. --size 320x180, --max-time 120).
 #
 #   bench/sim_seeds.sh            # seeds 0..20
 #   SEEDS=0..5 bench/sim_seeds.sh --noise 0

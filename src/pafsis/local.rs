@@ -590,7 +590,7 @@ impl Pafsis {
             matched_doors: 0,
             side_door_first: None,
             last_door_distance: None,
-            door_ahead_first: Vec::with_capacity(DOOR_AHEAD_FIRST_FRAMES + 1),
+            door_ahead_first: Vec::with_capacity(DOOR_AHEAD_FIRST_FRAMES),
             replans: 0,
             status: GoalStatus::Active,
             events: Vec::new(),
@@ -909,9 +909,12 @@ impl Pafsis {
             self.last_door_distance = Some(d);
         }
         if new_door {
+            // the next door: placed afresh from its own frames
+            self.door_sighting_reported = false;
+            self.tracking = None;
             self.door_ahead_first.clear();
         }
-        if !self.door_sighting_reported || new_door {
+        if !self.door_sighting_reported {
             match distance {
                 // without a distance the sighting says only that a door is passed
                 None if self.door_ahead_first.is_empty() => {

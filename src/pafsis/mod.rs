@@ -66,7 +66,7 @@ pub struct PafsisParams {
     pub cross_track_hold_m: f64,
     /// On corridor legs, each frame's side walls ([`walls`]) move the heading estimate this
     /// fraction of the way to what they say (0, the default: the flow's yaw keeps the heading
-    /// better; the fitted walls' directions scatter by degrees at the simulator's 320×180).
+    /// better; the fitted walls' directions scatter by degrees at 320×180).
     pub wall_heading_gain: f64,
     /// ... and the dead-reckoned offset from the centre line, where the map gives the
     /// corridor's width (0: never).
