@@ -563,8 +563,9 @@ fn a_leg_to_a_place_starts_from_where_the_robot_already_is_along_it() {
     assert_eq!(blind.progress().along_m, 0.0);
 }
 
-#[test]
-fn doors_seen_obliquely_do_not_relocalise() {
+/// The office mission R9 → D2 driven 2 m into its corridor leg (D3 is expected 6 m along it),
+/// its events taken.
+fn two_metres_into_the_corridor() -> Pafsis {
     let map = office();
     let mut nav = mission(&map, "R9:D2");
     let none = Perception::default();
@@ -580,6 +581,13 @@ fn doors_seen_obliquely_do_not_relocalise() {
         nav.step(&none, forward, 0.1);
     }
     nav.take_events();
+    nav
+}
+
+#[test]
+fn doors_seen_obliquely_do_not_relocalise() {
+    let mut nav = two_metres_into_the_corridor();
+    let none = Perception::default();
     let door = Perception {
         tpo: Tpo { shape: TpoShape::Door, confidence: 0.9, distance_m: Some(3.7) },
         ..Perception::default()
@@ -616,21 +624,7 @@ fn doors_seen_obliquely_do_not_relocalise() {
 /// corridor) does not move the progress; the same door at ranges that agree does, by their median.
 #[test]
 fn a_door_ahead_relocalises_only_when_its_frames_agree() {
-    let map = office();
-    let mut nav = mission(&map, "R9:D2");
-    let none = Perception::default();
-    let forward = BodyVelocity::new(0.2, 0.0);
-    while nav.progress().leg < 2 {
-        nav.step(&none, forward, 0.1);
-    }
-    while nav.progress().leg < 3 {
-        nav.step(&none, BodyVelocity::new(0.0, 0.5), 0.02);
-    }
-    // 2 m along the corridor leg; D3 is expected 6 m along it
-    for _ in 0..100 {
-        nav.step(&none, forward, 0.1);
-    }
-    nav.take_events();
+    let mut nav = two_metres_into_the_corridor();
     let before = nav.progress().along_m;
     let door = |d: f64| Perception {
         tpo: Tpo { shape: TpoShape::Door, confidence: 0.9, distance_m: Some(d) },

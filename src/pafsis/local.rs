@@ -915,21 +915,16 @@ impl Pafsis {
             self.door_ahead_first.clear();
         }
         if !self.door_sighting_reported {
-            match distance {
+            let sighting = match distance {
                 // without a distance the sighting says only that a door is passed
-                None if self.door_ahead_first.is_empty() => {
-                    self.door_sighting_reported = true;
-                    self.tracking = None;
-                    self.door_sighted(None);
-                }
-                None => {}
-                Some(d) => {
-                    if let Some(seen_at) = self.door_ahead_place(self.along_m + d) {
-                        self.door_sighting_reported = true;
-                        self.tracking = None;
-                        self.door_sighted(Some(seen_at));
-                    }
-                }
+                None if self.door_ahead_first.is_empty() => Some(None),
+                None => None,
+                Some(d) => self.door_ahead_place(self.along_m + d).map(Some),
+            };
+            if let Some(seen_at) = sighting {
+                self.door_sighting_reported = true;
+                self.tracking = None;
+                self.door_sighted(seen_at);
             }
         } else if let (Some(at), Some(d)) = (self.tracking, distance) {
             // Still looking at the matched door: pull the progress toward what each frame says,
