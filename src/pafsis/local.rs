@@ -48,7 +48,7 @@ const DOOR_TRACK_GAIN: f64 = 0.1;
 /// scattered depths of its far end) is named a door at a range that jumps by metres from frame
 /// to frame. One such frame moved the progress 0.76 m back, and the robot stopped 0.94 m from
 /// its goal.
-const DOOR_AHEAD_FIRST_FRAMES: usize = 3;
+const DOOR_AHEAD_FRAMES: usize = 3;
 /// Openings in a side wall count as doors while their centre is at least this far to the side
 /// for each metre ahead (14°): nearer the view's axis, one profile bin (3.4° of the C310's
 /// view) moves a jamb along the wall by more than a third of a metre.
@@ -526,8 +526,8 @@ pub struct Pafsis {
     side_door_first: Option<(usize, Vec<f64>)>,
     last_door_distance: Option<f64>,
     /// Where the last frames of the current streak of door frames put the door along the leg,
-    /// m, until [`DOOR_AHEAD_FIRST_FRAMES`] of them agree ([`Pafsis::door_ahead_place`]).
-    door_ahead_first: Vec<f64>,
+    /// m, until [`DOOR_AHEAD_FRAMES`] of them agree ([`Pafsis::door_ahead_place`]).
+    door_ahead_recent: Vec<f64>,
     replans: u32,
     status: GoalStatus,
     events: Vec<PafsisEvent>,
@@ -590,7 +590,7 @@ impl Pafsis {
             matched_doors: 0,
             side_door_first: None,
             last_door_distance: None,
-            door_ahead_first: Vec::with_capacity(DOOR_AHEAD_FIRST_FRAMES),
+            door_ahead_recent: Vec::with_capacity(DOOR_AHEAD_FRAMES),
             replans: 0,
             status: GoalStatus::Active,
             events: Vec::new(),
@@ -872,7 +872,7 @@ impl Pafsis {
         } else {
             self.streak = (shape, 1);
             self.door_sighting_reported = false;
-            self.door_ahead_first.clear();
+            self.door_ahead_recent.clear();
         }
         let stop = self.params.stop_distance_m;
         let end_ahead = (matches!(shape, TpoShape::Corner | TpoShape::Wall)
@@ -909,15 +909,15 @@ impl Pafsis {
             self.last_door_distance = Some(d);
         }
         if new_door {
-            // the next door: placed afresh from its own frames
+            // the next door: placed afresh from its own frames (the matched door's tracking
+            // is not read again before a new sighting resets it)
             self.door_sighting_reported = false;
-            self.tracking = None;
-            self.door_ahead_first.clear();
+            self.door_ahead_recent.clear();
         }
         if !self.door_sighting_reported {
             let sighting = match distance {
                 // without a distance the sighting says only that a door is passed
-                None if self.door_ahead_first.is_empty() => Some(None),
+                None if self.door_ahead_recent.is_empty() => Some(None),
                 None => None,
                 Some(d) => self.door_ahead_place(self.along_m + d).map(Some),
             };
@@ -1094,21 +1094,21 @@ impl Pafsis {
 
     /// The place along the leg of the door seen ahead, from the current streak's frames: `seen_at`
     /// is where this frame puts it; `Some` (their median) once the last
-    /// [`DOOR_AHEAD_FIRST_FRAMES`] places agree within `landmark_gate_m`.
+    /// [`DOOR_AHEAD_FRAMES`] places agree within `landmark_gate_m`.
     fn door_ahead_place(&mut self, seen_at: f64) -> Option<f64> {
-        let first = &mut self.door_ahead_first;
-        if first.len() == DOOR_AHEAD_FIRST_FRAMES {
-            first.remove(0);
+        let recent = &mut self.door_ahead_recent;
+        if recent.len() == DOOR_AHEAD_FRAMES {
+            recent.remove(0);
         }
-        first.push(seen_at);
-        if first.len() < DOOR_AHEAD_FIRST_FRAMES {
+        recent.push(seen_at);
+        if recent.len() < DOOR_AHEAD_FRAMES {
             return None;
         }
-        let mut sorted = [0.0; DOOR_AHEAD_FIRST_FRAMES];
-        sorted.copy_from_slice(first);
+        let mut sorted = [0.0; DOOR_AHEAD_FRAMES];
+        sorted.copy_from_slice(recent);
         sorted.sort_by(f64::total_cmp);
-        let spread = sorted[DOOR_AHEAD_FIRST_FRAMES - 1] - sorted[0];
-        (spread <= self.params.landmark_gate_m).then(|| sorted[DOOR_AHEAD_FIRST_FRAMES / 2])
+        let spread = sorted[DOOR_AHEAD_FRAMES - 1] - sorted[0];
+        (spread <= self.params.landmark_gate_m).then(|| sorted[DOOR_AHEAD_FRAMES / 2])
     }
 
     /// Matches a door sighting against the next expected doors: `seen_at` is where along the
@@ -1242,7 +1242,7 @@ impl Pafsis {
         // A door already in view when the leg starts counts for the new leg.
         self.door_sighting_reported = false;
         self.last_door_distance = None;
-        self.door_ahead_first.clear();
+        self.door_ahead_recent.clear();
         match self.legs.get(index) {
             Some(leg) => self.events.push(PafsisEvent::LegStarted { index, leg: leg.to_string() }),
             None => self.arrive(),
