@@ -427,6 +427,21 @@ fn run_width(pts: &[(usize, [f64; 2])], [start, end]: [usize; 2]) -> f64 {
     (last[0] - first[0]).hypot(last[1] - first[1])
 }
 
+/// What a plane fit is for, which decides how a narrow run nearer than its neighbours is read.
+///
+/// - `Surfaces`: the reference the obstacle test measures against, the walls PAFSIS steers by
+///   and the TPO's distance. Every such run is an occluder, left out of the planes: a box
+///   beside a wall must stay clearly nearer than the surface behind it, or it is no obstacle.
+/// - `Shape`: the TPO's class. A run that lies on one line with farther points at a grazing
+///   angle ([`grazing_wall`]) is a stretch of wall between two door openings and stays in the
+///   fit: without it a corridor near its doors loses both walls and reads `none`. Taking it
+///   for a wall costs at most a wrong class, never an obstacle unseen.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reading {
+    Surfaces,
+    Shape,
+}
+
 /// Bins whose envelope points form an *occluder*: a run of bins (neighbours within a depth
 /// step of each other, empty bins skipped) that is nearer than the surfaces on both sides of
 /// it, across a depth step, and narrower than a plane ([`MIN_PLANE_M`]). A box or a person in
@@ -434,13 +449,13 @@ fn run_width(pts: &[(usize, [f64; 2])], [start, end]: [usize; 2]) -> f64 {
 /// opening is farther than its wall, not nearer. A run at the image edge has a neighbour on
 /// one side only: see [`edge_candidates`] and [`TpoModel::fit`]. An occluder in front of
 /// another leaves it out of the runs, and the one behind is looked for again.
-pub fn occluders(bins: &[Bin]) -> u64 {
+pub fn occluders(bins: &[Bin], reading: Reading) -> u64 {
     // an occluder may stand in front of another (a noisy bin in front of a person): the runs
     // are cut again without the occluders found so far, until no new one appears
     let mut mask = 0u64;
     let mut view = bins.to_vec();
     for _ in 0..3 {
-        let found = occluders_once(&view);
+        let found = occluders_once(&view, reading);
         if found & !mask == 0 {
             break;
         }
@@ -454,8 +469,77 @@ pub fn occluders(bins: &[Bin]) -> u64 {
     mask
 }
 
+/// A run of points is a stretch of wall seen at a grazing angle, not an occluder, when its
+/// line makes an angle of at least this with the view ray through it, degrees ...
+pub const GRAZING_MIN_DEG: f64 = 8.0;
+/// ... and at most this (a box face or a person is seen nearly face on) ...
+pub const GRAZING_MAX_DEG: f64 = 45.0;
+/// ... and the line through it and a farther point of the profile spans at most this beyond
+/// the run's own width, m.
+pub const GRAZING_REACH_M: f64 = 3.0;
+
+/// Whether the points `run` are a stretch of a wall seen at a grazing angle that continues past
+/// a depth step: a point farther than all of them lies, with them, on one line (every point
+/// within its tolerance) spanning a plane's width, and both that line and the stretch's own
+/// (of two points or more) run away from the camera ([`GRAZING_MIN_DEG`]–[`GRAZING_MAX_DEG`]
+/// off the view ray); a stretch of one point needs a nearer point on that line as well, on its
+/// other side, so a single bin at the image edge is never one. Along a corridor's wall the
+/// range grows by more than a depth step from bin to bin, and door openings cut the wall into
+/// runs narrower than a plane that are nearer than their neighbours: an occluder's shape, on a
+/// surface the TPO planes need. A box or a person seen face on, or a line along a view ray
+/// (which no visible surface is), does not pass.
+fn grazing_wall(bins: &[Bin], pts: &[(usize, [f64; 2])], run: [usize; 2]) -> bool {
+    let own = run_mask(pts, run);
+    let (near, far) = pts[run[0]..run[1]]
+        .iter()
+        .map(|&(_, p)| range(p))
+        .fold((f64::INFINITY, 0.0_f64), |(lo, hi), r| (lo.min(r), hi.max(r)));
+    let n = (run[1] - run[0]) as f64;
+    let centre = pts[run[0]..run[1]].iter().fold([0.0, 0.0], |c, &(_, p)| [c[0] + p[0] / n, c[1] + p[1] / n]);
+    let ray = {
+        let r = range(centre).max(1e-9);
+        [centre[0] / r, centre[1] / r]
+    };
+    let grazing = |line: &Line| (GRAZING_MIN_DEG..=GRAZING_MAX_DEG).contains(&angle_between(line.dir, ray));
+    // a stretch of two points or more must itself run away from the camera (a face-on box or
+    // person does not); a single point must lie between a nearer and a farther one on the line
+    let single = run[1] - run[0] < 2;
+    if !single && !fit_mask(bins, own).is_some_and(|l| grazing(&l)) {
+        return false;
+    }
+    // the wall goes on where the stretch's range grows: beyond its farther end in bin order (a
+    // single point: the nearer part on one side of it, the farther on the other)
+    let (first, last) = (pts[run[0]], pts[run[1] - 1]);
+    let onward = |b: usize| if range(last.1) >= range(first.1) { b > last.0 } else { b < first.0 };
+    let farther: Vec<u64> = pts
+        .iter()
+        .filter(|&&(b, q)| range(q) > far && range(q) <= FIT_RANGE_M && (onward(b) || single && b < first.0))
+        .map(|&(b, _)| 1u64 << b)
+        .collect();
+    let nearer = |q: u64| -> Vec<u64> {
+        if !single {
+            return vec![0];
+        }
+        let before = q < 1 << first.0;
+        pts.iter()
+            .filter(|&&(b, p)| range(p) < near && (b < first.0) != before && b != first.0)
+            .map(|&(b, _)| 1u64 << b)
+            .collect()
+    };
+    let on_one_line = |mask: u64| {
+        let Some(line) = fit_mask(bins, mask) else { return false };
+        let fits = (0..bins.len().min(64))
+            .filter(|&x| mask >> x & 1 == 1)
+            .filter_map(|x| bins[x].point)
+            .all(|p| line.distance(p) <= tolerance(range(p)));
+        let span = line.extent[1] - line.extent[0];
+        fits && span >= MIN_PLANE_M && span <= run_width(pts, run) + GRAZING_REACH_M && grazing(&line)
+    };
+    farther.iter().any(|&q| nearer(q).iter().any(|&m| on_one_line(own | q | m)))
+}
+
 /// One pass of [`occluders`].
-fn occluders_once(bins: &[Bin]) -> u64 {
+fn occluders_once(bins: &[Bin], reading: Reading) -> u64 {
     let (pts, runs) = runs(bins);
     let mut mask = 0u64;
     for w in runs.windows(3) {
@@ -464,6 +548,7 @@ fn occluders_once(bins: &[Bin]) -> u64 {
         if nearer_than(pts[before[1] - 1].1, pts[run[0]].1)
             && nearer_than(pts[after[0]].1, pts[run[1] - 1].1)
             && run_width(&pts, run) < MIN_PLANE_M
+            && !(reading == Reading::Shape && grazing_wall(bins, &pts, run))
         {
             mask |= run_mask(&pts, run);
         }
@@ -476,7 +561,7 @@ fn occluders_once(bins: &[Bin]) -> u64 {
 /// a run is either an obstacle at the edge of the view or a stretch of wall beside an opening
 /// (a door's jamb); [`TpoModel::fit`] tells them apart. Nearer runs at both edges are the two
 /// sides of an opening (a door's wall, a corridor's walls), not occluders: none is returned.
-pub fn edge_candidates(bins: &[Bin]) -> [u64; 2] {
+pub fn edge_candidates(bins: &[Bin], reading: Reading) -> [u64; 2] {
     let (pts, runs) = runs(bins);
     if runs.len() < 2 {
         return [0, 0];
@@ -487,6 +572,7 @@ pub fn edge_candidates(bins: &[Bin]) -> [u64; 2] {
         if range(edge_to_neighbour) < range(neighbour)
             && nearest < range(neighbour)
             && run_width(&pts, run) < MIN_PLANE_M
+            && !(reading == Reading::Shape && grazing_wall(bins, &pts, run))
         {
             run_mask(&pts, run)
         } else {
@@ -564,8 +650,18 @@ impl TpoModel {
     /// bearings) or it stands on the far side of the heading from a lone wall along it (where a
     /// corridor's other wall would be); otherwise it is put back and the model refitted with it.
     pub fn fit(bins: &[Bin]) -> Self {
-        let occluded = occluders(bins);
-        let edges = edge_candidates(bins);
+        Self::fit_for(bins, Reading::Surfaces)
+    }
+
+    /// The fit [`TpoModel::fit`] makes, for the TPO's shape: a stretch of wall seen at a
+    /// grazing angle between two openings ([`grazing_wall`]) is a wall, not an occluder.
+    pub fn fit_shape(bins: &[Bin]) -> Self {
+        Self::fit_for(bins, Reading::Shape)
+    }
+
+    fn fit_for(bins: &[Bin], reading: Reading) -> Self {
+        let occluded = occluders(bins, reading);
+        let edges = edge_candidates(bins, reading);
         if edges == [0, 0] {
             return Self::fit_without(bins, occluded);
         }
@@ -979,7 +1075,7 @@ mod tests {
             *p = [0.85 * b.cos(), 0.85 * b.sin()];
         }
         let bins = bins_on(&pts);
-        assert_eq!(edge_candidates(&bins), [0, 0b1111_1100_0000_0000]);
+        assert_eq!(edge_candidates(&bins, Reading::Surfaces), [0, 0b1111_1100_0000_0000]);
         let m = TpoModel::fit(&bins);
         assert_eq!(m.occluded, 0b1111_1100_0000_0000, "{m:?}");
         let f = Features::compute(&bins, &m);
@@ -992,7 +1088,52 @@ mod tests {
                 if y.abs() < 1.0 { [5.0, y * 2.5] } else { [2.0, y] }
             })
             .collect();
-        assert_eq!(edge_candidates(&bins_on(&pts)), [0, 0]);
+        assert_eq!(edge_candidates(&bins_on(&pts), Reading::Surfaces), [0, 0]);
+    }
+
+    /// The view down a 2 m corridor from 0.3 m left of its centre, over 16 bins of ±25°: the
+    /// walls 0.7 m to the left and 1.3 m to the right, each with a door opening from 2.45 m to
+    /// 3.35 m ahead onto a room 4 m deep.
+    fn corridor_with_doors() -> Vec<Bin> {
+        (0..16)
+            .map(|k| {
+                let b = (25.0 - 50.0 * (k as f64 + 0.5) / 16.0).to_radians();
+                let wall = if b > 0.0 { 0.7 } else { 1.3 };
+                let mut forward = wall / b.tan().abs();
+                if (2.45..=3.35).contains(&forward) {
+                    forward = (wall + 4.0) / b.tan().abs();
+                }
+                Bin { point: Some([forward, forward * b.tan()]), bearing: b }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn stretches_of_a_corridor_wall_between_openings_are_walls_for_the_shape_only() {
+        // each wall shows a stretch before its door and one after it: narrower than a plane,
+        // nearer than the room seen through the door and than the far wall past a depth step,
+        // but on one line with the farther wall, seen at a grazing angle
+        let bins = corridor_with_doors();
+        assert_eq!(occluders(&bins, Reading::Shape), 0);
+        assert_eq!(edge_candidates(&bins, Reading::Shape), [0, 0]);
+        let m = TpoModel::fit_shape(&bins);
+        let f = Features::compute(&bins, &m);
+        assert_eq!(f.planes, 2.0, "{m:?}");
+        assert!(f.pair_angle_deg < 3.0 && f.side_angle_deg < 3.0 && f.opposite == 1.0, "{f:?} {m:?}");
+        let mut sides: Vec<f64> = m.planes().map(|l| l.side()).collect();
+        sides.sort_by(f64::total_cmp);
+        assert!((sides[0] + 1.3).abs() < 0.05 && (sides[1] - 0.7).abs() < 0.05, "{m:?}");
+        // for the surfaces the same stretches stay occluders: the obstacle test never loses a
+        // narrow thing nearer than its neighbours to a wall
+        assert_eq!(occluders(&bins, Reading::Surfaces), 0b111_0000);
+        assert_eq!(edge_candidates(&bins, Reading::Surfaces), [0b111, 0]);
+        // a box seen face on in front of the far corridor is an occluder for the shape too,
+        // although its face lines up with the walls' points at its range
+        let mut bins = bins;
+        for bin in bins.iter_mut().take(9).skip(7) {
+            bin.point = Some([3.0, 3.0 * bin.bearing.tan()]);
+        }
+        assert_eq!(occluders(&bins, Reading::Shape), 0b1_1000_0000);
     }
 
     #[test]

@@ -186,8 +186,12 @@ pub struct Attributes {
     pub bins: Vec<Bin>,
     /// ... of which this many bins hold a point carried from earlier steps ([`carry`]).
     pub carried_bins: usize,
-    /// The TPO's planes fitted to it.
+    /// The planes fitted to it as surfaces: the obstacle test's reference, the walls PAFSIS
+    /// steers by, the TPO's distance ([`features::Reading::Surfaces`]) ...
     pub model: TpoModel,
+    /// ... and as the TPO's shape, which the features are computed from
+    /// ([`features::Reading::Shape`]).
+    pub shape_model: TpoModel,
     /// The classifier inputs (flownav's, computed in both modes).
     pub features: Features,
     /// The paper classifier's inputs (computed in both modes; they decide in paper mode).
@@ -477,7 +481,8 @@ impl Offis {
             (false, _) => 0,
         };
         let model = TpoModel::fit(&bins);
-        let features = Features::compute(&bins, &model);
+        let shape_model = TpoModel::fit_shape(&bins);
+        let features = Features::compute(&bins, &shape_model);
         let decision = if foe.is_some() || carried_bins > 0 {
             match self.params.classifier {
                 ClassifierKind::Flownav => self.classifier.classify(&features),
@@ -491,7 +496,7 @@ impl Offis {
         // no plane to them has not seen that no TPO is there, only not where (depth noise at a
         // low resolution scatters a wall's points): it adds nothing, as a short pair does,
         // instead of voting `none` against the pairs around it that name the TPO
-        let evidence = evidence && model.places(&bins);
+        let evidence = evidence && shape_model.places(&bins);
         self.filter.advance(since);
         let report = |d: &Decision| Filtered { shape: d.shape, confidence: d.confidence, classes: d.classes, steps: 0 };
         let filtered = match (evidence, self.filter.held()) {
@@ -585,6 +590,7 @@ impl Offis {
             bins,
             carried_bins,
             model,
+            shape_model,
             features,
             paper,
             decision,
@@ -604,7 +610,7 @@ impl Offis {
         if self.carry.fill(&mut self.carried) == 0 {
             return Ok(None);
         }
-        let model = TpoModel::fit(&self.carried);
+        let model = TpoModel::fit_shape(&self.carried);
         let features = Features::compute(&self.carried, &model);
         self.classifier.classify(&features).map(Some).map_err(OffisError::Classify)
     }

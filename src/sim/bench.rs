@@ -194,7 +194,7 @@ pub struct Sample {
     pub profile: Vec<Option<[f64; 2]>>,
     /// Blocks found nearer than the TPO, and in the reported obstacle's cluster.
     pub obstacle_blocks: [usize; 2],
-    /// The planes fitted to the profile, for diagnosis.
+    /// The planes fitted to the profile for the TPO's shape, for diagnosis.
     pub model: crate::offis::features::TpoModel,
     /// The paper classifier's inputs (paper mode; the defaults otherwise).
     pub paper: crate::offis::paper::PaperFeatures,
@@ -347,7 +347,7 @@ pub fn run_each(
                     pipeline.offis().attributes().obstacle_blocks,
                     pipeline.offis().attributes().obstacle_cluster,
                 ],
-                model: pipeline.offis().attributes().model,
+                model: pipeline.offis().attributes().shape_model,
                 paper: pipeline.offis().attributes().paper,
             };
             progress(i, k, &sample);

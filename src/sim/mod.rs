@@ -620,7 +620,7 @@ pub async fn run_with_camera<C: Camera>(
             tracing::trace!(
                 target: "flownav::sim::frames",
                 "offis t={t_s:.3} pair_dt={:.3} foe={} bins_pts={} carried={} planes={} raw={:?} raw_conf={:.2} groups={:?} filt={:?} filt_steps={} filt_classes={:?} valid={} outliers={} feat={:?} profile={} planes_fit={}",
-                o.dt, a.foe.is_some(), a.bins.iter().filter(|b| b.point.is_some()).count(), a.carried_bins, a.model.planes().count(), a.decision.shape, a.decision.confidence,
+                o.dt, a.foe.is_some(), a.bins.iter().filter(|b| b.point.is_some()).count(), a.carried_bins, a.shape_model.planes().count(), a.decision.shape, a.decision.confidence,
                 a.decision.groups.map(|g| (g * 100.0).round() / 100.0), a.filtered.shape, a.filtered.steps,
                 a.filtered.classes.map(|g| (g * 100.0).round() / 100.0), a.valid, a.outliers, a.features,
                 // the envelope profile, left bin first (forward,left m; - for an empty bin), and
@@ -631,7 +631,7 @@ pub async fn run_with_camera<C: Camera>(
                     .map(|b| b.point.map_or("-".to_string(), |p| format!("{:.2},{:.2}", p[0], p[1])))
                     .collect::<Vec<_>>()
                     .join(";"),
-                a.model
+                a.shape_model
                     .planes()
                     .map(|l| format!(
                         "{:b}@{:.2},{:.2}/{:.2},{:.2}",
