@@ -430,12 +430,13 @@ fn run_width(pts: &[(usize, [f64; 2])], [start, end]: [usize; 2]) -> f64 {
 /// What a plane fit is for, which decides how a narrow run nearer than its neighbours is read.
 ///
 /// - `Surfaces`: the reference the obstacle test measures against, the walls PAFSIS steers by
-///   and the TPO's distance. Every such run is an occluder, left out of the planes: a box
+///   and the TPO's distance (a corner's aside). Every such run is an occluder, left out of the planes: a box
 ///   beside a wall must stay clearly nearer than the surface behind it, or it is no obstacle.
-/// - `Shape`: the TPO's class. A run that lies on one line with farther points at a grazing
-///   angle ([`grazing_wall`]) is a stretch of wall between two door openings and stays in the
-///   fit: without it a corridor near its doors loses both walls and reads `none`. Taking it
-///   for a wall costs at most a wrong class, never an obstacle unseen.
+/// - `Shape`: the TPO's class, the corner's vertex (its distance) and whether the pair places
+///   a TPO at all. A run that lies on one line with farther points at a grazing angle
+///   ([`grazing_wall`]) is a stretch of wall between door openings and stays in the fit:
+///   without it a corridor near its doors loses both walls and reads `none`. Taking it for a
+///   wall costs at most a wrong class, never an obstacle unseen.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Reading {
     Surfaces,
@@ -448,7 +449,9 @@ pub enum Reading {
 /// front of a wall; TPO planes reach the floor and the ceiling and are wide, and a door's
 /// opening is farther than its wall, not nearer. A run at the image edge has a neighbour on
 /// one side only: see [`edge_candidates`] and [`TpoModel::fit`]. An occluder in front of
-/// another leaves it out of the runs, and the one behind is looked for again.
+/// another leaves it out of the runs, and the one behind is looked for again. In the
+/// [`Reading::Shape`], a run that is a stretch of wall seen at a grazing angle
+/// ([`grazing_wall`]) is no occluder.
 pub fn occluders(bins: &[Bin], reading: Reading) -> u64 {
     // an occluder may stand in front of another (a noisy bin in front of a person): the runs
     // are cut again without the occluders found so far, until no new one appears
@@ -561,6 +564,8 @@ fn occluders_once(bins: &[Bin], reading: Reading) -> u64 {
 /// a run is either an obstacle at the edge of the view or a stretch of wall beside an opening
 /// (a door's jamb); [`TpoModel::fit`] tells them apart. Nearer runs at both edges are the two
 /// sides of an opening (a door's wall, a corridor's walls), not occluders: none is returned.
+/// In the [`Reading::Shape`], a run that is a stretch of wall seen at a grazing angle
+/// ([`grazing_wall`]) is no candidate.
 pub fn edge_candidates(bins: &[Bin], reading: Reading) -> [u64; 2] {
     let (pts, runs) = runs(bins);
     if runs.len() < 2 {
@@ -650,18 +655,30 @@ impl TpoModel {
     /// bearings) or it stands on the far side of the heading from a lone wall along it (where a
     /// corridor's other wall would be); otherwise it is put back and the model refitted with it.
     pub fn fit(bins: &[Bin]) -> Self {
-        Self::fit_for(bins, Reading::Surfaces)
+        Self::fit_masked(bins, Self::masks(bins, Reading::Surfaces))
     }
 
     /// The fit [`TpoModel::fit`] makes, for the TPO's shape: a stretch of wall seen at a
-    /// grazing angle between two openings ([`grazing_wall`]) is a wall, not an occluder.
+    /// grazing angle ([`grazing_wall`]: between two door openings, or beside one at the image
+    /// edge) is a wall, not an occluder.
     pub fn fit_shape(bins: &[Bin]) -> Self {
-        Self::fit_for(bins, Reading::Shape)
+        Self::fit_masked(bins, Self::masks(bins, Reading::Shape))
     }
 
-    fn fit_for(bins: &[Bin], reading: Reading) -> Self {
-        let occluded = occluders(bins, reading);
-        let edges = edge_candidates(bins, reading);
+    /// Both fits, `[surfaces, shape]`, as [`TpoModel::fit`] and [`TpoModel::fit_shape`] make
+    /// them; fitted once when the two readings leave out the same runs (most steps).
+    pub fn fit_both(bins: &[Bin]) -> [Self; 2] {
+        let (surfaces, shape) = (Self::masks(bins, Reading::Surfaces), Self::masks(bins, Reading::Shape));
+        let fitted = Self::fit_masked(bins, surfaces);
+        [fitted, if shape == surfaces { fitted } else { Self::fit_masked(bins, shape) }]
+    }
+
+    /// The occluders and the edge candidates of `bins` in `reading`.
+    fn masks(bins: &[Bin], reading: Reading) -> (u64, [u64; 2]) {
+        (occluders(bins, reading), edge_candidates(bins, reading))
+    }
+
+    fn fit_masked(bins: &[Bin], (occluded, edges): (u64, [u64; 2])) -> Self {
         if edges == [0, 0] {
             return Self::fit_without(bins, occluded);
         }
@@ -1127,6 +1144,19 @@ mod tests {
         // narrow thing nearer than its neighbours to a wall
         assert_eq!(occluders(&bins, Reading::Surfaces), 0b111_0000);
         assert_eq!(edge_candidates(&bins, Reading::Surfaces), [0b111, 0]);
+        let surfaces = TpoModel::fit(&bins);
+        assert_ne!(surfaces.occluded & 0b111_0000, 0, "{surfaces:?}");
+        assert_eq!(TpoModel::fit_both(&bins), [surfaces, m]);
+        // where the readings agree, both fits are one
+        let wall: Vec<Bin> = (0..16)
+            .map(|k| {
+                let b = (25.0 - 50.0 * (k as f64 + 0.5) / 16.0_f64).to_radians();
+                Bin { point: Some([2.0, 2.0 * b.tan()]), bearing: b }
+            })
+            .collect();
+        let [a, b] = TpoModel::fit_both(&wall);
+        assert_eq!((a, b), (TpoModel::fit(&wall), TpoModel::fit_shape(&wall)));
+        assert_eq!(a, b);
         // a box seen face on in front of the far corridor is an occluder for the shape too,
         // although its face lines up with the walls' points at its range
         let mut bins = bins;

@@ -187,10 +187,10 @@ pub struct Attributes {
     /// ... of which this many bins hold a point carried from earlier steps ([`carry`]).
     pub carried_bins: usize,
     /// The planes fitted to it as surfaces: the obstacle test's reference, the walls PAFSIS
-    /// steers by, the TPO's distance ([`features::Reading::Surfaces`]) ...
+    /// steers by, the TPO's distance (a corner's aside) ([`features::Reading::Surfaces`]) ...
     pub model: TpoModel,
-    /// ... and as the TPO's shape, which the features are computed from
-    /// ([`features::Reading::Shape`]).
+    /// ... and as the TPO's shape, which the features (the class, a corner's vertex) are
+    /// computed from ([`features::Reading::Shape`]).
     pub shape_model: TpoModel,
     /// The classifier inputs (flownav's, computed in both modes).
     pub features: Features,
@@ -480,8 +480,7 @@ impl Offis {
             (false, None) if flownav => self.carry.fill(&mut bins),
             (false, _) => 0,
         };
-        let model = TpoModel::fit(&bins);
-        let shape_model = TpoModel::fit_shape(&bins);
+        let [model, shape_model] = TpoModel::fit_both(&bins);
         let features = Features::compute(&bins, &shape_model);
         let decision = if foe.is_some() || carried_bins > 0 {
             match self.params.classifier {

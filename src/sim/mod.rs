@@ -617,28 +617,31 @@ pub async fn run_with_camera<C: Camera>(
                 pipeline.pafsis().and_then(|p| p.position_m()).map(|[x, y]| [(x * 1e3).round() / 1e3, (y * 1e3).round() / 1e3])
             );
             let a = pipeline.offis().attributes();
+            // a fit's planes: inlier bins (bit b = bin b), centre, direction
+            let fitted = |m: &crate::offis::features::TpoModel| {
+                m.planes()
+                    .map(|l| {
+                        format!("{:b}@{:.2},{:.2}/{:.2},{:.2}", l.inliers, l.centre[0], l.centre[1], l.dir[0], l.dir[1])
+                    })
+                    .collect::<Vec<_>>()
+                    .join("|")
+            };
             tracing::trace!(
                 target: "flownav::sim::frames",
-                "offis t={t_s:.3} pair_dt={:.3} foe={} bins_pts={} carried={} planes={} raw={:?} raw_conf={:.2} groups={:?} filt={:?} filt_steps={} filt_classes={:?} valid={} outliers={} feat={:?} profile={} planes_fit={}",
+                "offis t={t_s:.3} pair_dt={:.3} foe={} bins_pts={} carried={} planes={} raw={:?} raw_conf={:.2} groups={:?} filt={:?} filt_steps={} filt_classes={:?} valid={} outliers={} feat={:?} profile={} planes_fit={} surfaces_fit={}",
                 o.dt, a.foe.is_some(), a.bins.iter().filter(|b| b.point.is_some()).count(), a.carried_bins, a.shape_model.planes().count(), a.decision.shape, a.decision.confidence,
                 a.decision.groups.map(|g| (g * 100.0).round() / 100.0), a.filtered.shape, a.filtered.steps,
                 a.filtered.classes.map(|g| (g * 100.0).round() / 100.0), a.valid, a.outliers, a.features,
-                // the envelope profile, left bin first (forward,left m; - for an empty bin), and
-                // the fitted planes (inlier bins, bit b = bin b; centre; direction): what the
-                // classifier's features were computed from
+                // the envelope profile, left bin first (forward,left m; - for an empty bin); the
+                // planes of the shape fit, which the classifier's features were computed from,
+                // and of the surfaces fit, which the obstacle test and PAFSIS's walls use
                 a.bins
                     .iter()
                     .map(|b| b.point.map_or("-".to_string(), |p| format!("{:.2},{:.2}", p[0], p[1])))
                     .collect::<Vec<_>>()
                     .join(";"),
-                a.shape_model
-                    .planes()
-                    .map(|l| format!(
-                        "{:b}@{:.2},{:.2}/{:.2},{:.2}",
-                        l.inliers, l.centre[0], l.centre[1], l.dir[0], l.dir[1]
-                    ))
-                    .collect::<Vec<_>>()
-                    .join("|")
+                fitted(&a.shape_model),
+                fitted(&a.model)
             );
         }
         if tracing::enabled!(target: "flownav::sim::cells", tracing::Level::TRACE) {
