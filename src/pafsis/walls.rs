@@ -48,6 +48,16 @@ impl WallSighting {
         -self.angle_rad() - heading_rel_rad
     }
 
+    /// The sine of the angle at which the ray from the robot to `p` (a point on the wall, in
+    /// the robot's frame) meets the wall: 0 grazing along it, 1 square on.
+    pub fn sin_angle_to(&self, p: [f64; 2]) -> f64 {
+        let r = p[0].hypot(p[1]);
+        if r <= f64::EPSILON {
+            return 0.0;
+        }
+        (p[0] * self.dir[1] - p[1] * self.dir[0]).abs() / r
+    }
+
     /// Signed distance from the robot to the wall's line, m: + when the wall is on the left.
     pub fn offset_m(&self) -> f64 {
         let [ux, uy] = self.dir;
@@ -153,6 +163,23 @@ mod tests {
             assert!((i.heading_rad.unwrap() - 0.06).abs() < 1e-12, "{i:?}");
             assert!((i.lateral_m.unwrap() - 0.2).abs() < 1e-12, "{i:?}");
         }
+    }
+
+    #[test]
+    fn the_angle_at_a_wall_is_the_ray_against_the_wall_not_against_the_heading() {
+        // A side wall 1 m to the right, a door's centre 3 m along it from abeam.
+        for psi in [0.0, -0.3] {
+            // the robot turned `psi` (toward the right wall when negative)
+            let w = side_wall(psi, 0.0, 1.0, false);
+            let (s, c) = psi.sin_cos();
+            let p = [c * 3.0 - s * -1.0, s * 3.0 + c * -1.0];
+            let expect = (1.0f64).atan2(3.0).sin();
+            assert!((w.sin_angle_to(p) - expect).abs() < 1e-12, "{psi}: {}", w.sin_angle_to(p));
+        }
+        // square on, and a degenerate point at the robot
+        let frontal = WallSighting { point_m: [2.0, 0.0], dir: [0.0, 1.0], length_m: 2.0, openings: [None; 2] };
+        assert!((frontal.sin_angle_to([2.0, 0.0]) - 1.0).abs() < 1e-12);
+        assert_eq!(frontal.sin_angle_to([0.0, 0.0]), 0.0);
     }
 
     #[test]
