@@ -49,16 +49,9 @@ const DOOR_TRACK_GAIN: f64 = 0.1;
 /// to frame. One such frame moved the progress 0.76 m back, and the robot stopped 0.94 m from
 /// its goal.
 const DOOR_AHEAD_FRAMES: usize = 3;
-/// Openings in a side wall count as doors while the ray to their centre meets the wall at
-/// least this steeply (the sine of 14°, tan 0.25): at a shallower angle, one profile bin (3.4° of the
-/// C310's view) moves a jamb along the wall by more than a third of a metre. The angle is the
-/// ray's against the wall, not against the robot's heading: a robot turned toward the wall
-/// (swerving round a box) sees a door near the view's axis, yet steeply enough to place it.
-const SIDE_DOOR_MIN_SIN: f64 = 0.2425;
-/// An opening in a side wall this wide, jamb to jamb, is a door, m.
-const SIDE_DOOR_WIDTH_M: std::ops::RangeInclusive<f64> = 0.55..=1.1;
-/// ... in a wall whose fitted direction agrees with the estimated heading within this, rad:
-/// the openings of worse fits are off by twice as much.
+/// Doors are taken from the openings of walls whose fitted direction agrees with the estimated
+/// heading within this, rad ([`WallSighting::door_openings`]): the openings of worse fits are
+/// off by twice as much.
 const SIDE_DOOR_WALL_GATE_RAD: f64 = 0.1;
 /// The first this many frames that see an expected door in a side wall place it (their median:
 /// one frame's opening is off by a quarter metre, and one mis-binned jamb by more); later
@@ -1015,9 +1008,8 @@ impl Pafsis {
     }
 
     /// Doors seen as openings in the side walls of the frame ([`Pafsis::observe_walls`]): each
-    /// opening of a door's width ([`SIDE_DOOR_WIDTH_M`]), in a wall that runs along the leg,
-    /// seen steeply enough to place it ([`SIDE_DOOR_MIN_SIN`]), says where
-    /// along the leg a door on that side is.
+    /// door-like opening ([`WallSighting::door_openings`]) in a wall that runs along the leg
+    /// says where along the leg a door on that side is.
     fn side_doors(&mut self) {
         let Some(leg) = self.legs.get(self.leg) else { return };
         let LegKind::Corridor { doors, .. } = &leg.kind else { return };
@@ -1036,15 +1028,11 @@ impl Pafsis {
                 continue;
             }
             let side = if w.offset_m() >= 0.0 { Side::Left } else { Side::Right };
-            for [a, b] in w.openings.iter().flatten() {
-                let width = (a[0] - b[0]).hypot(a[1] - b[1]);
-                let [x, y] = [0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1])];
-                let (at, steep) = (along + c * x - s * y, w.sin_angle_to([x, y]) >= SIDE_DOOR_MIN_SIN);
-                tracing::trace!(target: "flownav::pafsis::doors", "opening side={side:?} x={x:.2} y={y:.2} width={width:.2} steep={steep} at={at:.2} along={along:.2}");
-                if SIDE_DOOR_WIDTH_M.contains(&width) && x > 0.0 && steep {
-                    // the opening's centre along the leg
-                    self.side_door_sighted(side, at);
-                }
+            for [x, y] in w.door_openings() {
+                // the opening's centre along the leg
+                let at = along + c * x - s * y;
+                tracing::trace!(target: "flownav::pafsis::doors", "door opening side={side:?} x={x:.2} y={y:.2} at={at:.2} along={along:.2}");
+                self.side_door_sighted(side, at);
             }
         }
         self.walls = walls;

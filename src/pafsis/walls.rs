@@ -58,6 +58,17 @@ impl WallSighting {
         (p[0] * self.dir[1] - p[1] * self.dir[0]).abs() / r
     }
 
+    /// The centres of the wall's openings that are a door's width ([`DOOR_WIDTH_M`]), ahead,
+    /// and seen steeply enough to be placed along the wall ([`DOOR_MIN_SIN`]), m.
+    pub fn door_openings(&self) -> impl Iterator<Item = [f64; 2]> + '_ {
+        self.openings.iter().flatten().filter_map(|[a, b]| {
+            let width = (a[0] - b[0]).hypot(a[1] - b[1]);
+            let centre = [0.5 * (a[0] + b[0]), 0.5 * (a[1] + b[1])];
+            (DOOR_WIDTH_M.contains(&width) && centre[0] > 0.0 && self.sin_angle_to(centre) >= DOOR_MIN_SIN)
+                .then_some(centre)
+        })
+    }
+
     /// Signed distance from the robot to the wall's line, m: + when the wall is on the left.
     pub fn offset_m(&self) -> f64 {
         let [ux, uy] = self.dir;
@@ -68,6 +79,15 @@ impl WallSighting {
         px.hypot(py).copysign(py)
     }
 }
+
+/// An opening in a wall this wide, jamb to jamb, is a door, m.
+const DOOR_WIDTH_M: std::ops::RangeInclusive<f64> = 0.55..=1.1;
+/// An opening counts as a door while the ray to its centre meets the wall at least this
+/// steeply (the sine of 14°, tan 0.25): at a shallower angle, one profile bin (3.4° of the
+/// C310's view) moves a jamb along the wall by more than a third of a metre. The angle is the
+/// ray's against the wall, not against the robot's heading: a robot turned toward the wall
+/// (swerving round a box) sees a door near the view's axis, yet steeply enough to place it.
+const DOOR_MIN_SIN: f64 = 0.2425;
 
 /// Which walls count, and how far a sighting may disagree with the estimate.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -172,7 +192,7 @@ mod tests {
             // the robot turned `psi` (toward the right wall when negative)
             let w = side_wall(psi, 0.0, 1.0, false);
             let (s, c) = psi.sin_cos();
-            let p = [c * 3.0 - s * -1.0, s * 3.0 + c * -1.0];
+            let p = [c * 3.0 - s, -s * 3.0 - c];
             let expect = (1.0f64).atan2(3.0).sin();
             assert!((w.sin_angle_to(p) - expect).abs() < 1e-12, "{psi}: {}", w.sin_angle_to(p));
         }
@@ -180,6 +200,38 @@ mod tests {
         let frontal = WallSighting { point_m: [2.0, 0.0], dir: [0.0, 1.0], length_m: 2.0, openings: [None; 2] };
         assert!((frontal.sin_angle_to([2.0, 0.0]) - 1.0).abs() < 1e-12);
         assert_eq!(frontal.sin_angle_to([0.0, 0.0]), 0.0);
+    }
+
+    #[test]
+    fn a_door_is_placed_by_the_angle_at_the_wall_even_near_the_view_axis() {
+        // The right wall 0.9 m away, a 0.9 m door whose centre is `along` m ahead along it.
+        let door = |psi: f64, along: f64| {
+            let mut w = side_wall(psi, -0.1, 1.0, false);
+            let (s, c) = psi.sin_cos();
+            let to_robot = |x: f64, y: f64| [c * x + s * (y + 0.1), -s * x + c * (y + 0.1)];
+            w.openings[0] = Some([to_robot(along + 0.45, -1.0), to_robot(along - 0.45, -1.0)]);
+            w
+        };
+        // Square to the corridor the door is 18° to the right, and its ray meets the wall at
+        // 18°: a door.
+        let square = door(0.0, 2.7);
+        let [centre] = square.door_openings().collect::<Vec<_>>()[..] else { panic!("{square:?}") };
+        assert!((centre[0] - 2.7).abs() < 1e-9 && (centre[1] + 0.9).abs() < 1e-9, "{centre:?}");
+        // Swerving 17° toward the wall (round a box) the door is 1° off the view's axis, where
+        // a bearing test would drop it, yet its ray still meets the wall at 18°: the same door.
+        let turned = door(-0.3, 2.7);
+        let [centre] = turned.door_openings().collect::<Vec<_>>()[..] else { panic!("{turned:?}") };
+        assert!(centre[1].atan2(centre[0]).abs() < 0.03, "{centre:?}");
+        assert!((centre[0].hypot(centre[1]) - 2.7f64.hypot(0.9)).abs() < 1e-9);
+        // 5 m along, the ray grazes the wall at 10°, however the robot is turned: not placed.
+        for psi in [0.0, -0.3, 0.3] {
+            assert_eq!(door(psi, 5.0).door_openings().count(), 0, "{psi}");
+        }
+        // Too wide for a door (a gap between two boxes), or behind: no door.
+        let mut wide = door(0.0, 2.7);
+        wide.openings[0] = Some([[3.6, -0.9], [2.2, -0.9]]);
+        wide.openings[1] = Some([[-0.4, -0.9], [-1.3, -0.9]]);
+        assert_eq!(wide.door_openings().count(), 0);
     }
 
     #[test]
