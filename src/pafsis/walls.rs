@@ -154,18 +154,20 @@ pub fn innovation(
 mod tests {
     use super::*;
 
+    /// Point `p` of the corridor frame in the frame of a robot at (0, `left`) turned `psi`.
+    fn to_robot(psi: f64, left: f64, p: [f64; 2]) -> [f64; 2] {
+        let (s, c) = psi.sin_cos();
+        let (dx, dy) = (p[0], p[1] - left);
+        [c * dx + s * dy, -s * dx + c * dy]
+    }
+
     /// A side wall of a corridor `half` m half-wide, seen by a robot `left` m left of the centre
     /// line and turned `psi` against the corridor's direction.
     fn side_wall(psi: f64, left: f64, half: f64, on_left: bool) -> WallSighting {
         // Corridor frame: the wall is the line y = ±half; the robot at (0, left), heading psi.
         let y_wall = if on_left { half } else { -half };
-        let (s, c) = psi.sin_cos();
-        let to_robot = |x: f64, y: f64| {
-            let (dx, dy) = (x, y - left);
-            [c * dx + s * dy, -s * dx + c * dy]
-        };
-        let a = to_robot(1.0, y_wall);
-        let b = to_robot(3.0, y_wall);
+        let a = to_robot(psi, left, [1.0, y_wall]);
+        let b = to_robot(psi, left, [3.0, y_wall]);
         let n = (b[0] - a[0]).hypot(b[1] - a[1]);
         WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: 2.0, openings: [None; 2] }
     }
@@ -191,8 +193,7 @@ mod tests {
         for psi in [0.0, -0.3] {
             // the robot turned `psi` (toward the right wall when negative)
             let w = side_wall(psi, 0.0, 1.0, false);
-            let (s, c) = psi.sin_cos();
-            let p = [c * 3.0 - s, -s * 3.0 - c];
+            let p = to_robot(psi, 0.0, [3.0, -1.0]);
             let expect = (1.0f64).atan2(3.0).sin();
             assert!((w.sin_angle_to(p) - expect).abs() < 1e-12, "{psi}: {}", w.sin_angle_to(p));
         }
@@ -207,9 +208,8 @@ mod tests {
         // The right wall 0.9 m away, a 0.9 m door whose centre is `along` m ahead along it.
         let door = |psi: f64, along: f64| {
             let mut w = side_wall(psi, -0.1, 1.0, false);
-            let (s, c) = psi.sin_cos();
-            let to_robot = |x: f64, y: f64| [c * x + s * (y + 0.1), -s * x + c * (y + 0.1)];
-            w.openings[0] = Some([to_robot(along + 0.45, -1.0), to_robot(along - 0.45, -1.0)]);
+            let jamb = |x: f64| to_robot(psi, -0.1, [x, -1.0]);
+            w.openings[0] = Some([jamb(along + 0.45), jamb(along - 0.45)]);
             w
         };
         // Square to the corridor the door is 18° to the right, and its ray meets the wall at
