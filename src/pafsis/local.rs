@@ -15,6 +15,7 @@
 use super::PafsisParams;
 use super::global::{Mission, Plan, PlanError, plan};
 use super::map::{Action, MapTolerance, PlaceKind, Side, TopoMap, Until, wrap_angle};
+use super::side_doors::SideDoorTrack;
 use super::walls::{self, WallGates, WallSighting};
 use crate::perception::{Perception, TpoShape};
 use hal::BodyVelocity;
@@ -53,9 +54,9 @@ const DOOR_AHEAD_FRAMES: usize = 3;
 /// heading within this, rad ([`WallSighting::door_openings`]): the openings of worse fits are
 /// off by twice as much.
 const SIDE_DOOR_WALL_GATE_RAD: f64 = 0.1;
-/// The first this many frames that see an expected door in a side wall place it (their median:
-/// one frame's opening is off by a quarter metre, and one mis-binned jamb by more); later
-/// frames pull the progress as a door seen ahead does ([`DOOR_TRACK_GAIN`]).
+/// The first this many frames that see an expected door in a side wall place it (one frame's
+/// opening is off by a quarter metre, and one mis-binned jamb by more); later frames refine the
+/// place ([`super::side_doors`]).
 const SIDE_DOOR_FIRST_FRAMES: usize = 5;
 /// Below this speed the side walls' openings are not taken, m/s.
 const SIDE_DOOR_MIN_SPEED_M_S: f64 = 0.1;
@@ -516,9 +517,12 @@ pub struct Pafsis {
     tracking: Option<f64>,
     /// The current leg's doors matched so far ([`door_bit`]).
     matched_doors: u64,
-    /// A door of the current leg seen in a side wall but not yet matched, and the first
-    /// disagreements of its sightings with the estimate, m ([`SIDE_DOOR_FIRST_FRAMES`]).
-    side_door_first: Option<(usize, Vec<f64>)>,
+    /// The doors of the current leg seen in its side walls, and their sightings
+    /// ([`side_doors`](super::side_doors)).
+    side_door_tracks: Vec<SideDoorTrack>,
+    /// Progress along the current leg from odometry alone, without the landmarks' corrections,
+    /// m: the frame the side doors' sightings are placed in.
+    dead_along_m: f64,
     last_door_distance: Option<f64>,
     /// Where the last frames of the current streak of door frames put the door along the leg,
     /// m, until [`DOOR_AHEAD_FRAMES`] of them agree ([`Pafsis::door_ahead_place`]).
@@ -583,7 +587,8 @@ impl Pafsis {
             door_sighting_reported: false,
             tracking: None,
             matched_doors: 0,
-            side_door_first: None,
+            side_door_tracks: Vec::new(),
+            dead_along_m: 0.0,
             last_door_distance: None,
             door_ahead_recent: Vec::with_capacity(DOOR_AHEAD_FRAMES),
             replans: 0,
@@ -758,7 +763,9 @@ impl Pafsis {
         if let Some(leg) = self.legs.get(self.leg)
             && !matches!(leg.kind, LegKind::Turn)
         {
-            self.along_m += odo.v * dt * (self.heading_rad - leg.heading_rad).cos();
+            let ds = odo.v * dt * (self.heading_rad - leg.heading_rad).cos();
+            self.along_m += ds;
+            self.dead_along_m += ds;
         }
     }
 
@@ -1032,7 +1039,7 @@ impl Pafsis {
                 // the opening's centre along the leg
                 let at = along + c * x - s * y;
                 tracing::trace!(target: "flownav::pafsis::doors", "door opening side={side:?} x={x:.2} y={y:.2} at={at:.2} along={along:.2}");
-                self.side_door_sighted(side, at);
+                self.side_door_sighted(side, at, x.hypot(y), w.sin_angle_to([x, y]));
             }
         }
         self.walls = walls;
@@ -1043,10 +1050,13 @@ impl Pafsis {
         self.matched_doors & door_bit(k) != 0
     }
 
-    /// Matches a door seen in the `side` wall at `seen_at` along the leg with the nearest
-    /// expected door on that side within its gate: a door already matched pulls the progress
-    /// a little toward it; a new one is placed by the median of its first sightings.
-    fn side_door_sighted(&mut self, side: Side, seen_at: f64) {
+    /// Matches a door seen in the `side` wall at `seen_at` along the leg, at range `range_m` by
+    /// a ray meeting the wall with sine `sin_angle`, with the nearest expected door on that side
+    /// within its gate, and adds it to that door's sightings ([`SideDoorTrack`]). The first
+    /// [`SIDE_DOOR_FIRST_FRAMES`] sightings place the door and move the progress to agree with
+    /// it; from then on the progress moves with the door's place as later, nearer frames
+    /// refine it.
+    fn side_door_sighted(&mut self, side: Side, seen_at: f64, range_m: f64, sin_angle: f64) {
         let Some(Leg { kind: LegKind::Corridor { doors, .. }, .. }) = self.legs.get(self.leg) else {
             return;
         };
@@ -1056,32 +1066,40 @@ impl Pafsis {
             .filter(|(_, d)| d.side.is_none_or(|s| s == side))
             .filter_map(|(k, d)| {
                 let innovation = d.at_m? - seen_at;
-                (innovation.abs() <= door_gate(&self.params, &self.map.tolerance, d.at_m)).then_some((k, innovation))
+                (innovation.abs() <= door_gate(&self.params, &self.map.tolerance, d.at_m)).then_some((k, d.at_m?))
             })
-            .min_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
-        let Some((k, innovation)) = nearest else { return };
-        if self.matched(k) {
-            if innovation.abs() <= self.params.landmark_gate_m {
-                self.along_m += DOOR_TRACK_GAIN * innovation;
+            .min_by(|a, b| (a.1 - seen_at).abs().total_cmp(&(b.1 - seen_at).abs()));
+        let Some((k, at_m)) = nearest else { return };
+        let track = match self.side_door_tracks.iter().position(|t| t.door == k) {
+            Some(i) => &mut self.side_door_tracks[i],
+            None => {
+                self.side_door_tracks.push(SideDoorTrack::new(k));
+                self.side_door_tracks.last_mut().expect("just pushed")
             }
-            return;
-        }
-        let first = match &mut self.side_door_first {
-            Some((door, first)) if *door == k => first,
-            slot => &mut slot.insert((k, Vec::new())).1,
         };
-        first.push(innovation);
-        if first.len() < SIDE_DOOR_FIRST_FRAMES {
+        // where the door is in the dead-reckoned frame, which the corrections do not move
+        track.add(self.dead_along_m + (seen_at - self.along_m), range_m, sin_angle);
+        if track.len() < SIDE_DOOR_FIRST_FRAMES {
             return;
         }
-        first.sort_by(f64::total_cmp);
-        let correction = first[first.len() / 2];
-        self.side_door_first = None;
+        let Some(place) = track.place() else { return };
+        let first = track.placed().is_none();
+        let moved = track.apply(place);
+        let correction = if first {
+            // the door at `at_m` is `place − dead_along` ahead
+            at_m - (place - self.dead_along_m) - self.along_m
+        } else {
+            // a door placed farther on means the robot is less far along
+            -moved
+        };
         self.along_m += correction;
+        if self.matched(k) {
+            return;
+        }
         self.matched_doors |= door_bit(k);
         self.doors_sighted += 1;
-        let (door, at_m) = (doors[k].name.clone(), doors[k].at_m);
-        self.events.push(PafsisEvent::DoorMatched { door, at_m, correction_m: correction, side: Some(side) });
+        let door = doors[k].name.clone();
+        self.events.push(PafsisEvent::DoorMatched { door, at_m: Some(at_m), correction_m: correction, side: Some(side) });
     }
 
     /// The place along the leg of the door seen ahead, from the current streak's frames: `seen_at`
@@ -1228,7 +1246,8 @@ impl Pafsis {
         self.doors_sighted = 0;
         self.tracking = None;
         self.matched_doors = 0;
-        self.side_door_first = None;
+        self.side_door_tracks.clear();
+        self.dead_along_m = self.along_m;
         self.wall_ahead_seen = false;
         self.wall_ahead_first.clear();
         // A door already in view when the leg starts counts for the new leg.

@@ -6,6 +6,7 @@
 pub mod global;
 pub mod local;
 pub mod map;
+pub mod side_doors;
 pub mod walls;
 
 pub use global::{Mission, Plan, PlanError, plan};
