@@ -29,6 +29,9 @@ struct Walk {
     /// The wall (y = +1 or −1 m) whose door openings (0.9 m wide, at [`DOOR_X`]) the fitted
     /// side walls show; `None`: no openings.
     openings_in: Option<f64>,
+    /// The openings also show while their doors are 3.5–5 m ahead, placed this much nearer than
+    /// they are (far away an opening spans about one profile bin and is placed short), m.
+    far_openings_short_m: Option<f64>,
     /// Odometry reports this much turn per metre driven on top of the true one (unequal wheel
     /// radii), rad/m.
     bend_rad_m: f64,
@@ -63,6 +66,7 @@ impl Walk {
             omega_bias: 0.0,
             walls: false,
             openings_in: None,
+            far_openings_short_m: None,
             bend_rad_m: 0.0,
             flow_yaw: false,
             calibration: OdometryCalibration::default(),
@@ -91,8 +95,12 @@ impl Walk {
                 let (a, b) = (to_robot(self.x + ahead, wall_y), to_robot(self.x + 3.0 * ahead, wall_y));
                 let n = (b[0] - a[0]).hypot(b[1] - a[1]);
                 let mut openings = [None; 2];
-                let seen = DOOR_X.iter().filter(|&&x| (1.5..=2.5).contains(&((x - self.x) * ahead)));
-                for (slot, &x) in openings.iter_mut().zip(seen).filter(|_| self.openings_in == Some(wall_y)) {
+                let near = DOOR_X.iter().filter(|&&x| (1.5..=2.5).contains(&((x - self.x) * ahead))).copied();
+                let far = self.far_openings_short_m.into_iter().flat_map(|short| {
+                    let far = DOOR_X.iter().filter(|&&x| (3.5..=5.0).contains(&((x - self.x) * ahead)));
+                    far.map(move |&x| x - short * ahead)
+                });
+                for (slot, x) in openings.iter_mut().zip(near.chain(far)).filter(|_| self.openings_in == Some(wall_y)) {
                     *slot = Some([to_robot(x + 0.45 * ahead, wall_y), to_robot(x - 0.45 * ahead, wall_y)]);
                 }
                 WallSighting { point_m: a, dir: [(b[0] - a[0]) / n, (b[1] - a[1]) / n], length_m: n, openings }
@@ -267,6 +275,28 @@ fn doors_seen_in_the_side_wall_correct_the_progress_on_their_side_only() {
         assert_eq!(matched(&events, Side::Left) + matched(&events, Side::Right), 0, "{openings_in:?}: {events:#?}");
         assert!(other.x > 9.45, "without openings on the doors' side stopped at x = {:.2}", other.x);
     }
+}
+
+#[test]
+fn a_side_door_placed_short_from_afar_is_placed_again_from_near() {
+    // The map's lengths are 5 % short of the odometry's. Each door's opening first shows 3.5–5 m
+    // ahead placed 0.5 m short, then 1.5–2.5 m ahead where it is: the near frames move the
+    // progress to the door's true place, beyond the gate that a later frame of an already
+    // matched door is held to.
+    let mut w = Walk {
+        odo_scale: 1.05,
+        landmarks: false,
+        walls: true,
+        openings_in: Some(1.0),
+        far_openings_short_m: Some(0.5),
+        ..Walk::new(21.0, -3.0, 90.0)
+    };
+    let (status, events) = w.run(&mut mission(&office(), "R9:D2"), 120.0);
+    assert_eq!(status, GoalStatus::Arrived);
+    let matched =
+        events.iter().filter(|e| matches!(e, PafsisEvent::DoorMatched { side: Some(Side::Right), .. })).count();
+    assert_eq!(matched, 2, "{events:#?}");
+    assert!((w.x - 9.0).abs() < 0.25, "stopped at x = {:.2}", w.x);
 }
 
 #[test]

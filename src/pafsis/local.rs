@@ -1099,7 +1099,12 @@ impl Pafsis {
         self.matched_doors |= door_bit(k);
         self.doors_sighted += 1;
         let door = doors[k].name.clone();
-        self.events.push(PafsisEvent::DoorMatched { door, at_m: Some(at_m), correction_m: correction, side: Some(side) });
+        self.events.push(PafsisEvent::DoorMatched {
+            door,
+            at_m: Some(at_m),
+            correction_m: correction,
+            side: Some(side),
+        });
     }
 
     /// The place along the leg of the door seen ahead, from the current streak's frames: `seen_at`

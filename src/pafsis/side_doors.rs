@@ -69,10 +69,11 @@ impl SideDoorTrack {
 }
 
 /// The weighted median of `(value, weight)` pairs: the smallest value at which the cumulative
-/// weight reaches half the total; `None` when there is no positive weight.
+/// weight reaches half the total; `None` when there is no positive weight (NaN weights are
+/// left out).
 pub fn weighted_median(pairs: &[(f64, f64)]) -> Option<f64> {
     let total: f64 = pairs.iter().map(|p| p.1).filter(|w| *w > 0.0).sum();
-    if !(total > 0.0) {
+    if total <= 0.0 {
         return None;
     }
     let mut sorted: Vec<(f64, f64)> = pairs.iter().copied().filter(|p| p.1 > 0.0).collect();
