@@ -1026,7 +1026,7 @@ impl Pafsis {
         }
         let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
         let (s, c) = heading_rel.sin_cos();
-        let (along, min_length_m) = (self.along_m, WallGates::default().min_length_m);
+        let min_length_m = WallGates::default().min_length_m;
         // every opening of the frame is placed from the same progress; the walls go back for
         // the side-wall corrections after
         let walls = std::mem::take(&mut self.walls);
@@ -1036,10 +1036,10 @@ impl Pafsis {
             }
             let side = if w.offset_m() >= 0.0 { Side::Left } else { Side::Right };
             for [x, y] in w.door_openings() {
-                // the opening's centre along the leg
-                let at = along + c * x - s * y;
-                tracing::trace!(target: "flownav::pafsis::doors", "door opening side={side:?} x={x:.2} y={y:.2} at={at:.2} along={along:.2}");
-                self.side_door_sighted(side, at, x.hypot(y), w.sin_angle_to([x, y]));
+                // how far along the leg the opening's centre is ahead of the robot
+                let ahead = c * x - s * y;
+                tracing::trace!(target: "flownav::pafsis::doors", "door opening side={side:?} x={x:.2} y={y:.2} at={:.2} along={:.2}", self.along_m + ahead, self.along_m);
+                self.side_door_sighted(side, ahead, x.hypot(y), w.sin_angle_to([x, y]));
             }
         }
         self.walls = walls;
@@ -1050,13 +1050,16 @@ impl Pafsis {
         self.matched_doors & door_bit(k) != 0
     }
 
-    /// Matches a door seen in the `side` wall at `seen_at` along the leg, at range `range_m` by
-    /// a ray meeting the wall with sine `sin_angle`, with the nearest expected door on that side
-    /// within its gate, and adds it to that door's sightings ([`SideDoorTrack`]). The first
+    /// Matches a door seen in the `side` wall `ahead_m` along the leg ahead of the robot, at
+    /// range `range_m` by a ray meeting the wall with sine `sin_angle`, with the nearest
+    /// expected door on that side within its gate, and adds it to that door's sightings ([`SideDoorTrack`]). The first
     /// [`SIDE_DOOR_FIRST_FRAMES`] sightings place the door and move the progress to agree with
     /// it; from then on the progress moves with the door's place as later, nearer frames
     /// refine it.
-    fn side_door_sighted(&mut self, side: Side, seen_at: f64, range_m: f64, sin_angle: f64) {
+    fn side_door_sighted(&mut self, side: Side, ahead_m: f64, range_m: f64, sin_angle: f64) {
+        // from the progress as it is now: an opening of another door earlier in the same frame
+        // may have moved it
+        let seen_at = self.along_m + ahead_m;
         let Some(Leg { kind: LegKind::Corridor { doors, .. }, .. }) = self.legs.get(self.leg) else {
             return;
         };
@@ -1078,7 +1081,7 @@ impl Pafsis {
             }
         };
         // where the door is in the dead-reckoned frame, which the corrections do not move
-        track.add(self.dead_along_m + (seen_at - self.along_m), range_m, sin_angle);
+        track.add(self.dead_along_m + ahead_m, range_m, sin_angle);
         if track.len() < SIDE_DOOR_FIRST_FRAMES {
             return;
         }
@@ -1093,6 +1096,9 @@ impl Pafsis {
             -moved
         };
         self.along_m += correction;
+        tracing::debug!(target: "flownav::pafsis::doors", "door {k} placed at {place:.2} (dead-reckoned), progress moved {correction:+.3} m");
+        // a door the view ahead matched already (often without a distance, so without a
+        // correction) is placed by its side sightings all the same, but matched only once
         if self.matched(k) {
             return;
         }

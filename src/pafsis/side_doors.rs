@@ -3,17 +3,18 @@
 //! One frame places an opening by the bearings of its jambs, and one profile bin (3.4° of the
 //! C310's view) moves a jamb along the wall by `r / sin g` × 0.06 m, where `r` is the range to
 //! the opening and `g` the angle at which the ray meets the wall. A door first comes into view
-//! far ahead, where its 0.9 m opening spans about one bin: there the opening's width is not
-//! resolved, and only the bins that make it look no wider than a door pass as one, which are
-//! those nearer than the door (the first frames of a door placed it 0.4–0.5 m short, median
-//! over the office's tuning runs). Nearer, it spans several bins and is placed to a decimetre.
+//! far ahead, where its 0.9 m opening spans about one bin: there its width is not resolved,
+//! and the first frames of a door placed it 0.37 m short in the median of the office's tuning
+//! runs (likely because only the bins that make it look no wider than a door pass as one, and
+//! those lie nearer than the door). Nearer, it spans several bins and is placed to a decimetre.
 //!
 //! So a door's place is the weighted median of every sighting of it so far, each weighted by
 //! the inverse square of its bin's along-wall extent, and it moves as nearer frames come: the
 //! first frames place the door, the nearest ones end up deciding where it is.
 //!
-//! Places are kept in the leg's dead-reckoned frame (odometry only, no landmark corrections),
-//! where a door stands still however the estimate is corrected meanwhile.
+//! Places are kept in the leg's dead-reckoned frame (the odometry's distance along the leg,
+//! without the landmarks' corrections of the progress), where a door stands still however the
+//! progress is corrected meanwhile.
 
 /// Below this, m, the bin's extent along the wall is no longer the larger error of a frame's
 /// opening (the jambs' depth and the wall's fit are), and nearer frames weigh no more.
@@ -38,6 +39,9 @@ impl SideDoorTrack {
     /// Adds a sighting that puts the door at `place_m` (dead-reckoned frame), seen at range
     /// `range_m` by a ray that meets the wall with sine `sin_angle`.
     pub fn add(&mut self, place_m: f64, range_m: f64, sin_angle: f64) {
+        if !(place_m.is_finite() && range_m.is_finite() && sin_angle.is_finite()) {
+            return;
+        }
         let extent = (range_m / sin_angle.max(f64::EPSILON)).max(RESOLVED_M);
         self.sightings.push((place_m, extent.powi(-2)));
     }
