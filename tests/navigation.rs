@@ -282,7 +282,7 @@ fn a_side_door_placed_short_from_afar_is_placed_again_from_near() {
     // The map's lengths are 5 % short of the odometry's. Each door's opening first shows 3.5–5 m
     // ahead placed 0.5 m short (those over about 4 m meet the wall too flat to count), then
     // 1.5–2.5 m ahead where it is: the near frames, though fewer and later, move the progress to
-    // the door's true place (a rule that keeps the first frames' place stops 0.63 m past D2).
+    // the door's true place (a rule that keeps the first frames' place stops 0.63 m short of D2).
     let mut w = Walk {
         odo_scale: 1.05,
         landmarks: false,
