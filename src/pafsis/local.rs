@@ -1027,8 +1027,8 @@ impl Pafsis {
         let heading_rel = wrap_angle(self.heading_rad - leg.heading_rad);
         let (s, c) = heading_rel.sin_cos();
         let min_length_m = WallGates::default().min_length_m;
-        // every opening of the frame is placed from the same progress; the walls go back for
-        // the side-wall corrections after
+        // each opening is placed from the progress as the frame's earlier openings left it
+        // (`side_door_sighted`); the walls go back for the side-wall corrections after
         let walls = std::mem::take(&mut self.walls);
         for w in &walls {
             if w.length_m < min_length_m || w.heading_disagreement(heading_rel).abs() > SIDE_DOOR_WALL_GATE_RAD {
@@ -1052,10 +1052,10 @@ impl Pafsis {
 
     /// Matches a door seen in the `side` wall `ahead_m` along the leg ahead of the robot, at
     /// range `range_m` by a ray meeting the wall with sine `sin_angle`, with the nearest
-    /// expected door on that side within its gate, and adds it to that door's sightings ([`SideDoorTrack`]). The first
-    /// [`SIDE_DOOR_FIRST_FRAMES`] sightings place the door and move the progress to agree with
-    /// it; from then on the progress moves with the door's place as later, nearer frames
-    /// refine it.
+    /// expected door on that side within its gate, and adds it to that door's sightings
+    /// ([`SideDoorTrack`]). The first [`SIDE_DOOR_FIRST_FRAMES`] sightings place the door and
+    /// move the progress to agree with it; from then on the progress moves with the door's
+    /// place as later, nearer frames refine it.
     fn side_door_sighted(&mut self, side: Side, ahead_m: f64, range_m: f64, sin_angle: f64) {
         // from the progress as it is now: an opening of another door earlier in the same frame
         // may have moved it
