@@ -106,7 +106,7 @@ impl OffisParams {
         let pos = |v: f64| v.is_finite() && v > 0.0;
         let nonneg = |v: f64| v.is_finite() && v >= 0.0;
         let t = &self.temporal;
-        let checks: [(&str, bool, &str); 20] = [
+        let checks: [(&str, bool, &str); 21] = [
             ("outlier.k_median", pos(self.outlier.k_median), "must be a positive number (typ. 2..5)"),
             ("outlier.floor_px", nonneg(self.outlier.floor_px), "must be ≥ 0 pixels"),
             ("outlier.min_support", self.outlier.min_support <= 8, "must be in 0..=8 neighbours"),
@@ -147,6 +147,7 @@ impl OffisParams {
                 nonneg(t.carry_m) && nonneg(t.carry_turn_rad) && nonneg(t.carry_age_s),
                 "and temporal.carry_turn_rad, temporal.carry_age_s must be ≥ 0 (carry_m 0: off)",
             ),
+            ("temporal.none_weight", pos(t.none_weight) && t.none_weight <= 1.0, "must be in (0, 1]"),
         ];
         match checks.iter().find(|(_, ok, _)| !ok) {
             Some((field, _, problem)) => Err(ConfigError::invalid(format!("offis.{field}"), *problem)),

@@ -52,6 +52,9 @@ pub struct TemporalParams {
     pub carry_turn_rad: f64,
     /// ... and this time, s.
     pub carry_age_s: f64,
+    /// The weight of the window's `none` against the TPO classes when it decides, in (0, 1]
+    /// (1: the largest mean membership wins).
+    pub none_weight: f64,
 }
 
 impl Default for TemporalParams {
@@ -65,6 +68,7 @@ impl Default for TemporalParams {
             carry_m: 0.6,
             carry_turn_rad: 0.8,
             carry_age_s: 3.0,
+            none_weight: 0.4,
         }
     }
 }
@@ -174,7 +178,9 @@ impl ClassFilter {
             w *= self.params.decay;
         }
         let classes = sum.map(|s| s / weight);
-        let best = super::classify::decide(&classes);
+        let mut weighed = classes;
+        weighed[4] *= self.params.none_weight;
+        let best = super::classify::decide(&weighed);
         Filtered { shape: TpoShape::ALL[best], confidence: classes[best], classes, steps: self.entries.len() }
     }
 }
@@ -241,6 +247,26 @@ mod tests {
         };
         let out = f.push(&d);
         assert_eq!((out.shape, out.confidence, out.classes, out.steps), (TpoShape::Door, 0.7, d.classes, 1));
+    }
+
+    #[test]
+    fn none_weighs_less_against_a_tpo_by_none_weight() {
+        // pairs alternating between a corridor named and one fitted to no class
+        let steps = [evidence(TpoShape::Corridor, 0.7, 0.0), evidence(TpoShape::None, 1.0, 0.0)];
+        for (none_weight, expect) in [(1.0, TpoShape::None), (0.5, TpoShape::Corridor)] {
+            let mut f = ClassFilter::new(TemporalParams { none_weight, ..TemporalParams::default() });
+            let mut out = Filtered::default();
+            for d in steps.iter().cycle().take(8) {
+                f.advance(FRAME);
+                out = f.push(d);
+            }
+            // the last step is a `none`: means over decay 0.8, none 0.56, corridor 0.31
+            assert_eq!(out.shape, expect, "none_weight {none_weight}: {out:?}");
+            let weights: Vec<f64> = (0..8).map(|age| 0.8f64.powi(age)).collect();
+            let corridor = 0.7 * weights.iter().skip(1).step_by(2).sum::<f64>() / weights.iter().sum::<f64>();
+            assert!((out.classes[3] - corridor).abs() < 1e-12, "{out:?}");
+            assert_eq!(out.confidence, out.classes[TpoShape::ALL.iter().position(|&s| s == expect).unwrap()]);
+        }
     }
 
     #[test]

@@ -504,6 +504,9 @@ fn the_temporal_table_is_range_checked() {
     assert_eq!(bad(temporal::TemporalParams { decay: 1.5, ..t }), "offis.temporal.decay");
     assert_eq!(bad(temporal::TemporalParams { max_age_s: 0.0, ..t }), "offis.temporal.max_turn_rad");
     assert_eq!(bad(temporal::TemporalParams { min_baseline_px: -1.0, ..t }), "offis.temporal.min_baseline_px");
+    for none_weight in [0.0, 1.5, f64::NAN] {
+        assert_eq!(bad(temporal::TemporalParams { none_weight, ..t }), "offis.temporal.none_weight");
+    }
     let parsed: OffisParams = toml::from_str("[temporal]\nwindow = 1\n").unwrap();
     assert_eq!((parsed.temporal.window, parsed.temporal.decay), (1, 0.8));
 }
