@@ -7,7 +7,8 @@
 #   bench/nav_report.sh                  # seeds 0..100 (reporting); navigation is tuned on 100..199
 #   SEEDS=0..10 bench/nav_report.sh      # a quicker look
 #   OUT=/tmp/nav bench/nav_report.sh     # one file per set there (default: target/nav-report)
-#   SETS="lshape hall" bench/nav_report.sh   # some of: office lshape narrow hall office-map
+#   SETS="lshape hall" bench/nav_report.sh   # some of: office lshape narrow hall office-map dense
+#                                        # (dense: the crowded office, a stress test; not in the default)
 #   SIZE=320x180 bench/nav_report.sh     # another render size (default: the simulator's)
 set -eu
 cd "$(dirname "$0")/.."
@@ -30,6 +31,7 @@ for w in lshape narrow hall; do
     case $w in lshape) m=R5:D10 ;; narrow) m=R5:D4 ;; hall) m=R10:D2 ;; esac
     if want "$w"; then run "$w" --world "mocks/worlds/$w.toml" --map "maps/$w.toml" --mission "$m"; fi
 done
+if want dense; then run dense --world mocks/worlds/office-dense.toml --map maps/office.toml --mission R9:D2; fi
 if want office-map; then
     for f in 1.05 0.95; do
         python3 bench/scale_map.py maps/office.toml "$f" --anchor R9 >"$out/office-x$f.toml"

@@ -248,11 +248,15 @@ impl Free {
 
 #[test]
 fn random_obstacles_leave_every_documented_mission_passable() {
-    for (name, mission) in documented_missions() {
+    // the documented missions, each in its world with its map, and the crowded office's
+    // (a stress world with the office's map)
+    let missions = documented_missions().into_iter().map(|(w, mission)| (w.clone(), w, mission));
+    let stress = [("office-dense".to_string(), "office".to_string(), "R9:D2".to_string())];
+    for (name, map_name, mission) in missions.chain(stress) {
         let w = world(&name);
         let mission: Mission = mission.parse().unwrap();
         let (a, b) = (w.places[&mission.from], w.places[&mission.to]);
-        let m = map(&name);
+        let m = map(&map_name);
         let route = plan(&m, &mission).unwrap();
         let places: Vec<[f64; 2]> = route.waypoints.iter().filter_map(|p| position(&w, &m, p)).collect();
         let free = Free::new(&w, &places);
