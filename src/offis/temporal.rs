@@ -189,11 +189,15 @@ impl ClassFilter {
 mod tests {
     use super::*;
 
+    /// Where `shape`'s membership is in a decision's `classes`.
+    fn class_index(shape: TpoShape) -> usize {
+        TpoShape::ALL.iter().position(|&s| s == shape).unwrap()
+    }
+
     /// A decision whose memberships are `m` for `shape` and `rest` for every other class.
     fn evidence(shape: TpoShape, m: f64, rest: f64) -> Decision {
-        let k = TpoShape::ALL.iter().position(|&s| s == shape).unwrap();
         let mut classes = [rest; 5];
-        classes[k] = m;
+        classes[class_index(shape)] = m;
         Decision { shape, confidence: m, groups: [0.0; 3], classes }
     }
 
@@ -264,8 +268,8 @@ mod tests {
             assert_eq!(out.shape, expect, "none_weight {none_weight}: {out:?}");
             let weights: Vec<f64> = (0..8).map(|age| 0.8f64.powi(age)).collect();
             let corridor = 0.7 * weights.iter().skip(1).step_by(2).sum::<f64>() / weights.iter().sum::<f64>();
-            assert!((out.classes[3] - corridor).abs() < 1e-12, "{out:?}");
-            assert_eq!(out.confidence, out.classes[TpoShape::ALL.iter().position(|&s| s == expect).unwrap()]);
+            assert!((out.classes[class_index(TpoShape::Corridor)] - corridor).abs() < 1e-12, "{out:?}");
+            assert_eq!(out.confidence, out.classes[class_index(expect)]);
         }
     }
 
