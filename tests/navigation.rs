@@ -848,34 +848,6 @@ mod mofis {
     }
 
     #[test]
-    fn the_guard_can_hold_its_bend_while_the_command_stays_blocked() {
-        let straight = goal(0.35, 0.0);
-        // only arcs turning right by at least 0.3 rad/s are clear: the guard bends to -0.35
-        let left_blocked = |curvature: f64, reach: f64, _: bool| if curvature * 0.35 <= -0.3 { reach } else { 0.05 };
-        // then the goal turns the command left (1.5 · 0.3 = 0.45 rad/s); every arc within the
-        // 0.5 rad/s bend of it runs 5 cm, the one at -0.35 rad/s 0.2 m: blocked, but freer
-        let graded = |curvature: f64, _: f64, _: bool| if curvature * 0.35 <= -0.3 { 0.2 } else { 0.05 };
-        let left = goal(0.35, 0.3);
-        let clear = |_: f64, reach: f64, _: bool| reach;
-        let holding = MofisParams { guard_hold: true, ..MofisParams::default() };
-        let mut m = Fusion::load(holding, ControlLimits::default()).unwrap();
-        let step = |m: &mut Fusion, g: &Goal, free: &dyn Fn(f64, f64, bool) -> f64| {
-            m.step_guarded(&Perception::default(), None, None, g, SETTLED, Some(free)).unwrap().fused
-        };
-        assert_eq!(step(&mut m, &straight, &left_blocked), BodyVelocity { v: 0.35, omega: -0.35 });
-        // by default the blocked command passes unchanged (0.3 rad off the heading, the look
-        // factor has slowed it to 0.75 of the speed); holding, it keeps that speed and the bend
-        let mut plain = mofis();
-        step(&mut plain, &straight, &left_blocked);
-        let passed = step(&mut plain, &left, &graded);
-        assert!((passed.omega - 0.45).abs() < 1e-12 && (passed.v - 0.75 * 0.35).abs() < 1e-12, "{passed:?}");
-        assert_eq!(step(&mut m, &left, &graded), BodyVelocity { v: passed.v, omega: -0.35 }, "held");
-        // a clear command passes and ends the hold
-        assert!((step(&mut m, &left, &clear).omega - 0.45).abs() < 1e-12);
-        assert!((step(&mut m, &left, &graded).omega - 0.45).abs() < 1e-12, "nothing held");
-    }
-
-    #[test]
     fn the_stopping_gate_caps_the_speed_whatever_the_rules_say() {
         use flownav::mofis::{Ahead, stop_speed};
         // √(2 · 0.8 · 0.1) = 0.4 m/s; nothing free: 0

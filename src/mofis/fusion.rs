@@ -72,9 +72,6 @@ pub struct Fusion {
     pub(super) limiter: Limiter,
     /// The side (+1 left, −1 right) chosen to pass the current dead-ahead obstacle.
     pass_side: Option<f64>,
-    /// The footprint guard's last bend at the command's speed, rad/s, until a command's arc is
-    /// clear ([`MofisParams::guard_hold`]).
-    pub(super) held_bend: Option<f64>,
 }
 
 impl Fusion {
@@ -150,7 +147,6 @@ impl Fusion {
             fusion_out,
             limiter: Limiter::new(limits),
             pass_side: None,
-            held_bend: None,
         })
     }
 

@@ -18,22 +18,19 @@ impl Fusion {
     /// is shorter; else (with `guard_brake`) the freest of those arcs at the full speed's
     /// reach, counting only the cells out of the camera's view, at the speed that stops short
     /// on it (unchanged when that arc is clear: what is in view is the stopping gate's); else
-    /// (with `guard_hold`) the last bend made at full speed, while its arc runs farther than
-    /// the command's; else unchanged. It never slows for what is in view alone: braking for every cell, down to a
+    /// unchanged. It never slows for what is in view alone: braking for every cell, down to a
     /// stop, left the robot standing in front of lingering phantom cells that nothing could
     /// clear (the mean simulated mission took 91 → 110–132 s; docs/missions-history.md).
     /// Turning on the spot and backing off pass: a round robot turning on the spot touches
     /// nothing, and backing off is the stall recovery's way out. `arc_free(curvature, reach,
     /// aside)` is [`super::memory::ObstacleMemory::arc_free`].
-    pub(super) fn guard(&mut self, cmd: BodyVelocity, arc_free: &dyn Fn(f64, f64, bool) -> f64) -> BodyVelocity {
+    pub(super) fn guard(&self, cmd: BodyVelocity, arc_free: &dyn Fn(f64, f64, bool) -> f64) -> BodyVelocity {
         if cmd.v.is_nan() || cmd.v <= 0.0 {
-            self.held_bend = None;
             return cmd;
         }
         let reach = self.guard_reach(cmd.v);
         let free = arc_free(cmd.omega / cmd.v, reach, false);
         if free >= reach {
-            self.held_bend = None;
             return cmd;
         }
         let max_turn = self.limiter.limits().max_turn_rate;
@@ -56,18 +53,8 @@ impl Fusion {
                     cmd.v,
                     cmd.omega
                 );
-                if frac == 1.0 {
-                    self.held_bend = Some(omega);
-                }
                 return BodyVelocity { v, omega };
             }
-        }
-        if self.params.guard_hold
-            && let Some(w) = self.held_bend
-            && arc_free(w / cmd.v, reach, false) > free + 1e-9
-        {
-            tracing::trace!(target: "flownav::mofis::guard", "hold v={:.2} w={:.2} -> w={w:.2}", cmd.v, cmd.omega);
-            return BodyVelocity { v: cmd.v, omega: w };
         }
         if self.params.guard_brake
             && let Some(braked) = self.guard_brake(cmd, &turns, reach, arc_free)

@@ -120,13 +120,6 @@ pub struct MofisParams {
     /// missions it left runs unarrived and with contact where there were none without it: the
     /// robot stood in front of faded cells beside it (docs/missions-history.md).
     pub guard_brake: bool,
-    /// ... and when none of those finds a clear arc: keep the guard's last bend (at the
-    /// command's speed) while it runs farther than the command's own arc, instead of passing
-    /// the command on; a command whose arc is clear ends the hold. Off by default, not yet
-    /// measured on the office: in a traced contact the goal turned the robot toward a faded
-    /// obstacle beside it, and the command alternated between the guard's bend away from it and
-    /// "blocked", which passed the turn into it (docs/results.md, *Contacts at 640×360*).
-    pub guard_hold: bool,
 }
 
 impl Default for MofisParams {
@@ -150,7 +143,6 @@ impl Default for MofisParams {
             guard_max_bend: 0.5,
             guard_slow: false,
             guard_brake: false,
-            guard_hold: false,
         }
     }
 }
