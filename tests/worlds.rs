@@ -123,6 +123,17 @@ fn every_world_and_map_loads_and_each_map_matches_its_world() {
 }
 
 #[test]
+fn the_crowded_office_is_the_office_but_for_its_random_obstacles() {
+    // office-dense.toml copies the office's geometry, places and fixed obstacles, and runs with
+    // its map: a change to office.toml must be made there too
+    let (office, mut dense) = (world("office"), world("office-dense"));
+    let (a, b) = (office.random.clone().unwrap(), dense.random.clone().unwrap());
+    assert!(b.people + b.boxes > a.people + a.boxes && b.min_spacing_m < a.min_spacing_m, "{b:?}");
+    (dense.name, dense.random) = (office.name.clone(), office.random.clone());
+    assert!(dense == office, "mocks/worlds/office-dense.toml differs from office.toml beyond [random] and its name");
+}
+
+#[test]
 fn the_documented_missions_plan_with_corner_turns_and_doors_on_both_sides() {
     let missions = documented_missions();
     for name in ["lshape", "narrow", "hall"] {
