@@ -10,6 +10,9 @@
 #   SETS="lshape hall" bench/nav_report.sh   # some of: office lshape narrow hall office-map dense
 #                                        # (dense: the crowded office, a stress test; not in the default)
 #   SIZE=320x180 bench/nav_report.sh     # another render size (default: the simulator's)
+#   CONFIG=/tmp/design.toml bench/nav_report.sh   # a partial config over the defaults (a design to screen)
+#
+# bench/compare_runs.py BASE.jsonl OTHER.jsonl compares two sets with intervals and Fisher's test.
 set -eu
 cd "$(dirname "$0")/.."
 cargo build --release --quiet
@@ -23,7 +26,7 @@ sets="${SETS:-office lshape narrow hall office-map}"
 want() { case " $sets " in *" $1 "*) return 0 ;; *) return 1 ;; esac; }
 run() { # NAME, then the flags of the set
     name="$1"; shift
-    "$bin" sim --seeds "$seeds" --jobs "$jobs" --no-log --quiet --start-error "$start" ${SIZE:+--size "$SIZE"} "$@" >"$out/$name.jsonl" || true
+    "$bin" ${CONFIG:+--config "$CONFIG"} sim --seeds "$seeds" --jobs "$jobs" --no-log --quiet --start-error "$start" ${SIZE:+--size "$SIZE"} "$@" >"$out/$name.jsonl" || true
     tail -n 1 "$out/$name.jsonl"
 }
 if want office; then run office --mission R9:D2; fi
