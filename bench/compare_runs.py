@@ -8,7 +8,9 @@ for a difference the scatter makes on its own.
 Each file holds the JSON lines of `flownav sim --seeds ...` (bench/nav_report.sh writes them);
 lines without a `seed` (the aggregate) are skipped. Per set it prints the runs, reached with its
 Clopper-Pearson interval, the runs with a contact with theirs (and those seeds), the mean
-mission time, the escapes, `obstacles_held` and the ghost cells. Standard library only.
+mission time, the escapes, `obstacles_held`, the ghost cells, and what the memory held of the
+object at each run's first contact (`first_contact.memory`: occupied, guarded, misplaced, faded,
+unknown; docs/sim.md). Standard library only.
 """
 
 import json
@@ -84,13 +86,21 @@ def summary(runs):
     def mean(key):
         return sum(r.get(key) or 0 for r in rows) / n
 
+    classes = {}
+    for r in rows:
+        first = r.get("first_contact") or {}
+        if "memory" in first:
+            classes[first["memory"]] = classes.get(first["memory"], 0) + 1
+    memory = ", ".join(f"{k} {v}" for k, v in sorted(classes.items(), key=lambda kv: (-kv[1], kv[0])))
+
     return {
         "n": n,
         "reached": reached,
         "touched": touched,
         "line": f"reached {rate(reached, n)}, runs with a contact {rate(len(touched), n)} {touched}, "
         f"mean time {mean('time_s'):.1f} s, escapes {sum(r.get('escapes', 0) for r in rows)}, "
-        f"held {100 * mean('obstacles_held'):.1f} %, ghost {100 * mean('cells_ghost'):.1f} %",
+        f"held {100 * mean('obstacles_held'):.1f} %, ghost {100 * mean('cells_ghost'):.1f} %"
+        + (f", first contacts: {memory}" if memory else ""),
     }
 
 

@@ -313,6 +313,11 @@ impl Mofis {
         &self.memory
     }
 
+    /// The parameters it runs with.
+    pub fn params(&self) -> &MofisParams {
+        &self.params
+    }
+
     /// The fuzzy core (rule bases, guard, limiter).
     pub fn fusion(&self) -> &Fusion {
         &self.fusion

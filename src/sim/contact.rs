@@ -1,7 +1,14 @@
-//! The `flownav::sim::contact` trace: at each new contact, what the obstacle memory held of the
-//! object touched, and what the pipeline decided. It sorts contacts into "drove into something
-//! it remembered" and "drove into something it had forgotten or never known" (docs/sim.md). A
-//! cell is on an obstacle within [`GHOST_M`] of its footprint, as for the held score.
+//! What the obstacle memory knew of the object the robot touched.
+//!
+//! [`classify`] sorts the first contact of every run (the summary's `first_contact.memory`):
+//! the memory held the object as occupied, held it only as cells the footprint guard counts,
+//! held guard-strength cells near the contact but off the object, had let it fade below the
+//! guard, or knew nothing. Each class calls for a different remedy (the avoidance, the guard,
+//! the depth of the cells, the fade), so a tally over many runs says which design to try.
+//!
+//! The `flownav::sim::contact` trace prints, at each new contact, the cells behind that class
+//! and what the pipeline decided (docs/sim.md). A cell is on an obstacle within [`GHOST_M`] of
+//! its footprint, as for the held score.
 
 use super::quality::GHOST_M;
 use crate::mofis::memory::ObstacleMemory;
@@ -9,6 +16,83 @@ use crate::step::{Pipeline, StepOutput};
 use hal::BodyVelocity;
 use mocks::world::Clearance;
 use mocks::{Pose, World};
+use serde::Serialize;
+
+/// Cells the guard counts this near the robot, m, and this near the contact's bearing, rad, off
+/// every surface, make a contact [`ContactMemory::Misplaced`] when none is on the object: the
+/// obstacle's corner reaching the rim while the memory holds its face a few decimetres off.
+const NEAR_M: f64 = 1.0;
+const NEAR_RAD: f64 = 1.0;
+
+/// What the memory held of the touched object at the contact, the first class that applies.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ContactMemory {
+    /// An occupied cell on the object: the avoidance knew it and still drove there.
+    Occupied,
+    /// Cells on the object that the footprint guard counts, none occupied.
+    Guarded,
+    /// No guard-strength cell on the object, but some near the robot on the contact's side,
+    /// off every surface (where the object is not).
+    Misplaced,
+    /// Cells on the object, all below what the guard counts: the memory let it fade.
+    Faded,
+    /// Nothing on the object and nothing near: never seen, or forgotten.
+    Unknown,
+}
+
+/// Where on the rim the robot at `pose` touches `object` (rad from the heading) and what the
+/// pipeline's memory holds of it, by the pipeline's own thresholds.
+pub(super) fn at_contact(pipeline: &Pipeline, world: &World, pose: Pose, object: &str) -> (f64, ContactMemory) {
+    let at_rad = contact_bearing(world, pose);
+    let memory = pipeline.memory();
+    let cells: Vec<([f64; 2], f64)> = memory.cells_above(0.05).into_iter().map(|(c, e, _)| (c, e)).collect();
+    let occupied = memory.params().occupied;
+    // with the guard off, what it would count is what the avoidance counts
+    let guard = Some(pipeline.mofis().params().guard_evidence).filter(|g| *g > 0.0).unwrap_or(occupied);
+    (at_rad, classify(&cells, occupied, guard, world, pose, object, at_rad))
+}
+
+/// What the memory held of `object` (a [`World::clearance`] label) when the robot, at `pose`,
+/// touched it at `at_rad` from its heading. `cells`: the memory's cells in the robot frame with
+/// their evidence; `occupied` and `guard`: the evidence of an occupied cell and the least the
+/// guard counts.
+pub fn classify(
+    cells: &[([f64; 2], f64)],
+    occupied: f64,
+    guard: f64,
+    world: &World,
+    pose: Pose,
+    object: &str,
+    at_rad: f64,
+) -> ContactMemory {
+    let on_object = |c: [f64; 2]| {
+        let [x, y] = pose.transform(c);
+        let at = world.clearance(x, y);
+        at.object == object && at.distance_m < GHOST_M
+    };
+    let on: Vec<f64> = cells.iter().filter(|(c, _)| on_object(*c)).map(|(_, e)| *e).collect();
+    let off_surfaces = |c: [f64; 2]| {
+        let [x, y] = pose.transform(c);
+        world.clearance(x, y).distance_m >= GHOST_M
+    };
+    let near = |c: [f64; 2]| {
+        let off =
+            (c[1].atan2(c[0]) - at_rad + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU) - std::f64::consts::PI;
+        c[0].hypot(c[1]) <= NEAR_M && off.abs() <= NEAR_RAD
+    };
+    if on.iter().any(|&e| e >= occupied) {
+        ContactMemory::Occupied
+    } else if on.iter().any(|&e| e >= guard) {
+        ContactMemory::Guarded
+    } else if cells.iter().any(|(c, e)| *e >= guard && near(*c) && off_surfaces(*c)) {
+        ContactMemory::Misplaced
+    } else if !on.is_empty() {
+        ContactMemory::Faded
+    } else {
+        ContactMemory::Unknown
+    }
+}
 
 /// What the trace keeps between contacts.
 pub(super) struct ContactTrace {
@@ -77,6 +161,7 @@ impl ContactTrace {
             .map(|(c, e, confirmed)| format!("{}:{e:.2}{}", polar(*c), if *confirmed { "*" } else { "" }))
             .collect();
         let held = cells.iter().filter(|(_, e, _)| *e >= occupied).count();
+        let (at_rad, class) = at_contact(s.pipeline, s.world, s.pose, &near.object);
         let decided = s.last.map_or(String::new(), |o| {
             format!(
                 "goal_v={:.2} goal_a={:.2} steer_a={:.2} avoid_d={:.2?} avoid_b={:.2?} weight={:.2} set_v={:.2} set_w={:.2}",
@@ -92,13 +177,13 @@ impl ContactTrace {
         });
         tracing::trace!(
             target: "flownav::sim::contact",
-            "contact t={:.2} x={:.2} y={:.2} yaw={:.2} object={} at={:.2} held_ago={:.2} odo_v={:.2} odo_w={:.2} occupied={} on_object=[{}] faint=[{}] {decided}",
+            "contact t={:.2} x={:.2} y={:.2} yaw={:.2} object={} at={:.2} memory={class:?} held_ago={:.2} odo_v={:.2} odo_w={:.2} occupied={} on_object=[{}] faint=[{}] {decided}",
             s.t_s,
             s.pose.x,
             s.pose.y,
             s.pose.yaw,
             near.object,
-            contact_bearing(s.world, s.pose),
+            at_rad,
             s.t_s - held_at,
             s.odometry.v,
             s.odometry.omega,
@@ -129,15 +214,47 @@ mod tests {
 
     #[test]
     fn the_contact_bearing_is_the_side_of_the_rim_that_touches() {
-        // the office world's person, touched at the rim's point 1 rad to the right of the heading
+        let (world, pose, _, at) = touching_the_person();
+        assert!(world.clearance(pose.x, pose.y).obstacle == Some(world.boxes.len()), "touching the person");
+        let b = contact_bearing(&world, pose);
+        assert!((b - at).abs() <= std::f64::consts::TAU / 126.0, "{b}");
+    }
+
+    /// The office's person touched at the rim's point 1 rad to the right of the heading: the
+    /// world, the robot's pose, the person's label and the contact's bearing.
+    fn touching_the_person() -> (World, Pose, String, f64) {
         let world = World::office();
         let person = &world.cylinders[0];
         let (heading, at) = (0.7f64, -1.0f64);
         let reach = person.radius + super::super::ROBOT_RADIUS_M;
         let [px, py] = person.center;
         let pose = Pose::new(px - reach * (heading + at).cos(), py - reach * (heading + at).sin(), heading);
-        assert!(world.clearance(pose.x, pose.y).obstacle == Some(world.boxes.len()), "touching the person");
-        let b = contact_bearing(&world, pose);
-        assert!((b - at).abs() <= std::f64::consts::TAU / 126.0, "{b}");
+        let object = world.clearance(pose.x, pose.y).object;
+        (world, pose, object, at)
+    }
+
+    /// A robot-frame point `r` m out at `b` rad.
+    fn polar(r: f64, b: f64) -> [f64; 2] {
+        [r * b.cos(), r * b.sin()]
+    }
+
+    #[test]
+    fn a_contact_is_classed_by_what_the_memory_held_of_the_object() {
+        let (world, pose, object, at) = touching_the_person();
+        let on = polar(super::super::ROBOT_RADIUS_M + 0.03, at);
+        let aside = polar(0.6, at + 0.8);
+        let behind = polar(0.6, at + std::f64::consts::PI);
+        for c in [aside, behind] {
+            let [x, y] = pose.transform(c);
+            assert!(world.clearance(x, y).distance_m >= GHOST_M, "{c:?} must be off every surface");
+        }
+        let class = |cells: &[([f64; 2], f64)]| classify(cells, 1.5, 0.3, &world, pose, &object, at);
+        assert_eq!(class(&[(on, 2.0), (aside, 0.5)]), ContactMemory::Occupied);
+        assert_eq!(class(&[(on, 0.5), (aside, 2.0)]), ContactMemory::Guarded);
+        assert_eq!(class(&[(on, 0.1), (aside, 0.5)]), ContactMemory::Misplaced);
+        assert_eq!(class(&[(on, 0.1), (aside, 0.2)]), ContactMemory::Faded);
+        assert_eq!(class(&[(on, 0.1), (behind, 2.0)]), ContactMemory::Faded);
+        assert_eq!(class(&[(behind, 2.0)]), ContactMemory::Unknown);
+        assert_eq!(class(&[]), ContactMemory::Unknown);
     }
 }

@@ -42,6 +42,7 @@
 
 pub mod bench;
 mod contact;
+pub use contact::ContactMemory;
 pub mod quality;
 pub mod stats;
 
@@ -265,6 +266,10 @@ pub struct Contact {
     pub pose: [f64; 3],
     /// The nearest object (`World::clearance`'s label, e.g. `box box1` or `wall …`).
     pub object: String,
+    /// Where on the rim it touched, rad from the heading (+ = left).
+    pub at_rad: f64,
+    /// What the obstacle memory held of the object then ([`contact::classify`]).
+    pub memory: ContactMemory,
 }
 
 impl SimSummary {
@@ -531,9 +536,12 @@ pub async fn run_with_camera<C: Camera>(
             trace.check(contacts, &near, &scene);
         }
         if first_contact.is_none() && contacts > 0 {
+            let (at_rad, memory) = contact::at_contact(control.pipeline(), &setup.world, pose, &near.object);
             first_contact = Some(Contact {
                 t_s: round3(t_s),
                 pose: [round3(pose.x), round3(pose.y), round3(pose.yaw.to_degrees())],
+                memory,
+                at_rad: round3(at_rad),
                 object: near.object,
             });
         }
