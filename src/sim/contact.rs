@@ -24,20 +24,26 @@ use serde::Serialize;
 const NEAR_M: f64 = 1.0;
 const NEAR_RAD: f64 = 1.0;
 
+/// A cell counts as holding the touched part of the object within this of the point of the rim
+/// that touched, m: a box held only at its far end has been forgotten where it matters.
+const AT_CONTACT_M: f64 = 0.3;
+
 /// What the memory held of the touched object at the contact, the first class that applies.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ContactMemory {
-    /// An occupied cell on the object: the avoidance knew it and still drove there.
+    /// An occupied cell on the touched part of the object (within [`AT_CONTACT_M`] of the
+    /// contact): the avoidance knew it and still drove there.
     Occupied,
-    /// Cells on the object that the footprint guard counts, none occupied.
+    /// Cells on the touched part that the footprint guard counts, none occupied.
     Guarded,
-    /// No guard-strength cell on the object, but some near the robot on the contact's side,
-    /// off every surface (where the object is not).
+    /// No guard-strength cell on the touched part, but some near the robot on the contact's
+    /// side, off every surface (where the object is not).
     Misplaced,
-    /// Cells on the object, all below what the guard counts: the memory let it fade.
+    /// Cells on the touched part, all below what the guard counts: the memory let it fade.
     Faded,
-    /// Nothing on the object and nothing near: never seen, or forgotten.
+    /// Nothing on the touched part and nothing near: never seen, or forgotten (held, if at
+    /// all, only at its far end).
     Unknown,
 }
 
@@ -66,10 +72,11 @@ pub fn classify(
     object: &str,
     at_rad: f64,
 ) -> ContactMemory {
+    let rim = [super::ROBOT_RADIUS_M * at_rad.cos(), super::ROBOT_RADIUS_M * at_rad.sin()];
     let on_object = |c: [f64; 2]| {
         let [x, y] = pose.transform(c);
         let at = world.clearance(x, y);
-        at.object == object && at.distance_m < GHOST_M
+        at.object == object && at.distance_m < GHOST_M && (c[0] - rim[0]).hypot(c[1] - rim[1]) <= AT_CONTACT_M
     };
     let on: Vec<f64> = cells.iter().filter(|(c, _)| on_object(*c)).map(|(_, e)| *e).collect();
     let off_surfaces = |c: [f64; 2]| {
@@ -255,6 +262,10 @@ mod tests {
         assert_eq!(class(&[(on, 0.1), (aside, 0.2)]), ContactMemory::Faded);
         assert_eq!(class(&[(on, 0.1), (behind, 2.0)]), ContactMemory::Faded);
         assert_eq!(class(&[(behind, 2.0)]), ContactMemory::Unknown);
+        // the person's far side, 0.5 m from the rim's point: held, but not where it touched
+        let far = polar(super::super::ROBOT_RADIUS_M + 0.45, at);
+        assert_eq!(class(&[(far, 2.0)]), ContactMemory::Unknown);
+        assert_eq!(class(&[(far, 2.0), (on, 0.5)]), ContactMemory::Guarded);
         assert_eq!(class(&[]), ContactMemory::Unknown);
     }
 }
