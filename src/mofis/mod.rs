@@ -118,8 +118,14 @@ pub struct MofisParams {
     /// default: the guard saw the traced contacts coming 1–1.5 s ahead and passed the command
     /// on at 0.35 m/s, and braking (with `guard_slow`) removed those contacts, but in other
     /// missions it left runs unarrived and with contact where there were none without it: the
-    /// robot stood in front of faded cells beside it (docs/missions-history.md).
+    /// robot stood in front of faded cells beside it (docs/missions-history.md). With it the
+    /// standstill escape takes only headings free of the guard's cells too, or it turns the
+    /// robot toward what the brake stands it in front of again.
     pub guard_brake: bool,
+    /// The guard counts, besides the cells it holds, every confirmed cell joined to one of them
+    /// (however faded): each cluster of cells is held as one obstacle while any of its cells
+    /// is ([`memory::ObstacleMemory::arc_free`]). Off by default (docs/missions-history.md).
+    pub guard_cluster: bool,
 }
 
 impl Default for MofisParams {
@@ -143,6 +149,7 @@ impl Default for MofisParams {
             guard_max_bend: 0.5,
             guard_slow: false,
             guard_brake: false,
+            guard_cluster: false,
         }
     }
 }
@@ -398,7 +405,15 @@ impl Mofis {
             None => {
                 let (memory, yaw) = (&self.memory, self.memory.yaw());
                 let look = self.escape.params().lookahead_m;
-                self.escape.apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| memory.free_in_lane(h, look))
+                let p = &self.params;
+                // a guard that brakes stands the robot before the cells it counts: an escape
+                // toward them would only stand it again
+                let guarded = |h: f64| match p.guard_brake && p.guard_evidence > 0.0 {
+                    true => memory.heading_free(h, look, p.guard_clearance_m, p.guard_evidence, p.guard_cluster),
+                    false => look,
+                };
+                self.escape
+                    .apply(goal, yaw, odometry.v * frame_dt, frame_dt, |h| memory.free_in_lane(h, look).min(guarded(h)))
             }
             Some(_) => goal,
         };
@@ -434,9 +449,10 @@ impl Mofis {
         let view = Perception { obstacle: avoided, ..perception.clone() };
         // the footprint guard: the arcs against every remembered cell, faded ones included
         let memory = &self.memory;
-        let (clearance, evidence) = (self.params.guard_clearance_m, self.params.guard_evidence);
+        let (clearance, evidence, cluster) =
+            (self.params.guard_clearance_m, self.params.guard_evidence, self.params.guard_cluster);
         let arc_free = move |curvature: f64, reach: f64, aside: bool| {
-            memory.arc_free(curvature, reach, clearance, evidence, aside)
+            memory.arc_free(curvature, reach, clearance, evidence, aside, cluster)
         };
         let output =
             self.fusion.step_guarded(&view, other.as_ref(), Some(ahead), &steered, frame_dt, Some(&arc_free))?;

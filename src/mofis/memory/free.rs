@@ -1,6 +1,7 @@
 //! How far a path is free: straight bands, the footprint's arcs, the lane and the door's wall.
 
 use super::*;
+use std::collections::BTreeSet;
 
 impl ObstacleMemory {
     /// How far the robot's origin at `p` (robot frame, m) is from the door's wall either side
@@ -58,7 +59,43 @@ impl ObstacleMemory {
     /// the widened footprint stops only motion toward it, so the robot can always drive away
     /// from what it is beside. `aside`: only the cells out of the camera's field of view count
     /// (the guard's brake: what is in view is measured again, and the stopping gate's).
-    pub fn arc_free(&self, curvature: f64, reach_m: f64, clearance_m: f64, min_evidence: f64, aside: bool) -> f64 {
+    /// `cluster`: also the confirmed cells joined to such a cell ([`guard_cells`](Self::guard_cells)).
+    pub fn arc_free(
+        &self,
+        curvature: f64,
+        reach_m: f64,
+        clearance_m: f64,
+        min_evidence: f64,
+        aside: bool,
+        cluster: bool,
+    ) -> f64 {
+        let arc = |s: f64| match curvature.abs() < 1e-6 {
+            true => [s, 0.0],
+            false => [(curvature * s).sin() / curvature, (1.0 - (curvature * s).cos()) / curvature],
+        };
+        self.path_free(reach_m, arc, clearance_m, min_evidence, aside, cluster)
+    }
+
+    /// [`arc_free`](Self::arc_free) for a straight path along `heading` (rad, robot frame, +
+    /// left) after turning to it on the spot, every cell counted, in view or not: where a
+    /// standstill escape may drive without the guard stopping it again.
+    pub fn heading_free(&self, heading: f64, reach_m: f64, clearance_m: f64, min_evidence: f64, cluster: bool) -> f64 {
+        let (sin, cos) = heading.sin_cos();
+        self.path_free(reach_m, |s| [s * cos, s * sin], clearance_m, min_evidence, false, cluster)
+    }
+
+    /// How far the robot's origin can drive along the path `at(s)` (its origin after `s` m,
+    /// robot frame) before its footprint meets a cell the guard counts or the door's wall
+    /// ([`arc_free`](Self::arc_free)).
+    fn path_free(
+        &self,
+        reach_m: f64,
+        at: impl Fn(f64) -> [f64; 2],
+        clearance_m: f64,
+        min_evidence: f64,
+        aside: bool,
+        cluster: bool,
+    ) -> f64 {
         if reach_m.is_nan() || reach_m <= 0.0 {
             return 0.0;
         }
@@ -66,16 +103,12 @@ impl ObstacleMemory {
         let body = self.params.robot_radius_m + clearance_m;
         let near = reach_m + body;
         let steps = (reach_m / ARC_STEP_M).ceil().max(1.0) as usize;
-        let arc = |s: f64| match curvature.abs() < 1e-6 {
-            true => [s, 0.0],
-            false => [(curvature * s).sin() / curvature, (1.0 - (curvature * s).cos()) / curvature],
-        };
         // the door's wall, from the map, counts wherever it is
-        let mut free = self.door_free(reach_m, arc);
-        for (key, _) in self.cells.iter().filter(|(_, c)| c.confirmed && c.evidence >= min_evidence) {
-            let [f, l] = self.to_robot(*key);
+        let mut free = self.door_free(reach_m, &at);
+        for key in self.guard_cells(min_evidence, cluster, near) {
+            let [f, l] = self.to_robot(key);
             let d0 = f.hypot(l);
-            if d0 > near || (aside && view_sector(f, l, half_fov).is_some()) {
+            if aside && view_sector(f, l, half_fov).is_some() {
                 continue;
             }
             for k in 1..=steps {
@@ -83,7 +116,7 @@ impl ObstacleMemory {
                 if s >= free {
                     break;
                 }
-                let [x, y] = arc(s);
+                let [x, y] = at(s);
                 let d = (f - x).hypot(l - y);
                 if d < body && d < d0 - 1e-3 {
                     free = free.min(reach_m * (k - 1) as f64 / steps as f64);
@@ -92,6 +125,38 @@ impl ObstacleMemory {
             }
         }
         free
+    }
+
+    /// The cells the footprint guard counts within `near` m of the robot: the confirmed ones
+    /// with at least `min_evidence`; with `cluster`, also every confirmed cell joined to one of
+    /// them through confirmed cells (8-neighbours, within `near`), however faded. An obstacle
+    /// out of view fades cell by cell, and the traced grazes touched a faded cell between two
+    /// held ones: the cluster is held as one shape while any of its cells is.
+    fn guard_cells(&self, min_evidence: f64, cluster: bool, near: f64) -> Vec<(i32, i32)> {
+        let close = |key: (i32, i32)| {
+            let [f, l] = self.to_robot(key);
+            f.hypot(l) <= near
+        };
+        let held: Vec<(i32, i32)> = self
+            .cells
+            .iter()
+            .filter(|&(&key, c)| c.confirmed && c.evidence >= min_evidence && close(key))
+            .map(|(&key, _)| key)
+            .collect();
+        if !cluster {
+            return held;
+        }
+        let mut joined: BTreeSet<(i32, i32)> = held.iter().copied().collect();
+        let mut stack = held;
+        while let Some((i, j)) = stack.pop() {
+            for key in (-1..=1).flat_map(|di| (-1..=1).map(move |dj| (i + di, j + dj))) {
+                if !joined.contains(&key) && self.cells.get(&key).is_some_and(|c| c.confirmed) && close(key) {
+                    joined.insert(key);
+                    stack.push(key);
+                }
+            }
+        }
+        joined.into_iter().collect()
     }
 
     /// How far a band `half` wide (m) either side of `heading` (rad, robot frame) is free of
