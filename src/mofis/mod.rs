@@ -408,7 +408,8 @@ impl Mofis {
                 let p = &self.params;
                 // a guard that brakes stands the robot before the cells it counts: an escape
                 // toward them would only stand it again
-                let guarded = |h: f64| match p.guard_brake && p.guard_evidence > 0.0 {
+                let braking = p.guard_brake && p.guard_evidence > 0.0;
+                let guarded = |h: f64| match braking {
                     true => memory.heading_free(h, look, p.guard_clearance_m, p.guard_evidence, p.guard_cluster),
                     false => look,
                 };

@@ -105,8 +105,7 @@ impl ObstacleMemory {
         let steps = (reach_m / ARC_STEP_M).ceil().max(1.0) as usize;
         // the door's wall, from the map, counts wherever it is
         let mut free = self.door_free(reach_m, &at);
-        for key in self.guard_cells(min_evidence, cluster, near) {
-            let [f, l] = self.to_robot(key);
+        for [f, l] in self.guard_cells(min_evidence, cluster, near) {
             let d0 = f.hypot(l);
             if aside && view_sector(f, l, half_fov).is_some() {
                 continue;
@@ -127,36 +126,28 @@ impl ObstacleMemory {
         free
     }
 
-    /// The cells the footprint guard counts within `near` m of the robot: the confirmed ones
-    /// with at least `min_evidence`; with `cluster`, also every confirmed cell joined to one of
-    /// them through confirmed cells (8-neighbours, within `near`), however faded. An obstacle
-    /// out of view fades cell by cell, and the traced grazes touched a faded cell between two
-    /// held ones: the cluster is held as one shape while any of its cells is.
-    fn guard_cells(&self, min_evidence: f64, cluster: bool, near: f64) -> Vec<(i32, i32)> {
-        let close = |key: (i32, i32)| {
-            let [f, l] = self.to_robot(key);
-            f.hypot(l) <= near
-        };
-        let held: Vec<(i32, i32)> = self
-            .cells
-            .iter()
-            .filter(|&(&key, c)| c.confirmed && c.evidence >= min_evidence && close(key))
-            .map(|(&key, _)| key)
-            .collect();
+    /// The cells the footprint guard counts within `near` m of the robot, robot frame: the
+    /// confirmed ones with at least `min_evidence`; with `cluster`, also every confirmed cell
+    /// joined to one of them through confirmed cells (8-neighbours, within `near`), however
+    /// faded. An obstacle out of view fades cell by cell, and the traced grazes touched a faded
+    /// cell between two held ones: the cluster is held as one shape while any of its cells is.
+    fn guard_cells(&self, min_evidence: f64, cluster: bool, near: f64) -> Vec<[f64; 2]> {
+        let close = |key: (i32, i32)| Some(self.to_robot(key)).filter(|[f, l]| f.hypot(*l) <= near);
+        let held = self.cells.iter().filter(|(_, c)| c.confirmed && c.evidence >= min_evidence);
         if !cluster {
-            return held;
+            return held.filter_map(|(&key, _)| close(key)).collect();
         }
-        let mut joined: BTreeSet<(i32, i32)> = held.iter().copied().collect();
-        let mut stack = held;
+        let mut stack: Vec<(i32, i32)> = held.map(|(&key, _)| key).filter(|&key| close(key).is_some()).collect();
+        let mut joined: BTreeSet<(i32, i32)> = stack.iter().copied().collect();
         while let Some((i, j)) = stack.pop() {
             for key in (-1..=1).flat_map(|di| (-1..=1).map(move |dj| (i + di, j + dj))) {
-                if !joined.contains(&key) && self.cells.get(&key).is_some_and(|c| c.confirmed) && close(key) {
+                if !joined.contains(&key) && self.cells.get(&key).is_some_and(|c| c.confirmed) && close(key).is_some() {
                     joined.insert(key);
                     stack.push(key);
                 }
             }
         }
-        joined.into_iter().collect()
+        joined.into_iter().map(|key| self.to_robot(key)).collect()
     }
 
     /// How far a band `half` wide (m) either side of `heading` (rad, robot frame) is free of

@@ -333,8 +333,6 @@ fn a_ray_over_a_low_box_does_not_clear_it() {
     assert!(!remains(0.5, 0.15));
 }
 
-mod paths;
-
 #[test]
 fn a_heading_is_free_as_the_straight_arc_turned_to_it() {
     let (reach, clear, min) = (1.0, 0.04, 0.3);
@@ -352,3 +350,5 @@ fn a_heading_is_free_as_the_straight_arc_turned_to_it() {
     // to the right, away from it, the way is free
     assert_eq!(m.heading_free(-std::f64::consts::FRAC_PI_2, reach, clear, min, false), reach);
 }
+
+mod paths;
