@@ -126,6 +126,11 @@ pub struct MofisParams {
     /// (however faded): each cluster of cells is held as one obstacle while any of its cells
     /// is ([`memory::ObstacleMemory::arc_free`]). Off by default (docs/missions-history.md).
     pub guard_cluster: bool,
+    /// The guard counts only the cells of a cluster of at least this many confirmed cells
+    /// (joined through confirmed 8-neighbours): a lone confirmed cell in free space is a
+    /// mismatched block's depth seen twice, and with `guard_brake` one beside the robot, out
+    /// of view where nothing clears it, stood the robot still. 1 (the default): every cell.
+    pub guard_min_cells: usize,
 }
 
 impl Default for MofisParams {
@@ -150,11 +155,22 @@ impl Default for MofisParams {
             guard_slow: false,
             guard_brake: false,
             guard_cluster: false,
+            guard_min_cells: 1,
         }
     }
 }
 
 impl MofisParams {
+    /// What the footprint guard counts in the memory, from the `guard_*` fields.
+    pub fn guard_cells(&self) -> memory::GuardCells {
+        memory::GuardCells {
+            clearance_m: self.guard_clearance_m,
+            min_evidence: self.guard_evidence,
+            cluster: self.guard_cluster,
+            min_cells: self.guard_min_cells,
+        }
+    }
+
     /// Checks ranges that serde cannot.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let bad = |field: &str, problem: &str| {
@@ -195,6 +211,9 @@ impl MofisParams {
         }
         if !(self.guard_max_bend.is_finite() && self.guard_max_bend >= 0.0) {
             return bad("guard_max_bend", "must be a turn rate ≥ 0 in rad/s");
+        }
+        if !(1..=100).contains(&self.guard_min_cells) {
+            return bad("guard_min_cells", "must be a number of cells in 1..=100 (1: every cell)");
         }
         self.memory.validate()?;
         self.stall.validate()?;
@@ -409,8 +428,9 @@ impl Mofis {
                 // a guard that brakes stands the robot before the cells it counts: an escape
                 // toward them would only stand it again
                 let braking = p.guard_brake && p.guard_evidence > 0.0;
+                let counted = p.guard_cells();
                 let guarded = |h: f64| match braking {
-                    true => memory.heading_free(h, look, p.guard_clearance_m, p.guard_evidence, p.guard_cluster),
+                    true => memory.heading_free(h, look, &counted),
                     false => look,
                 };
                 self.escape
@@ -450,11 +470,9 @@ impl Mofis {
         let view = Perception { obstacle: avoided, ..perception.clone() };
         // the footprint guard: the arcs against every remembered cell, faded ones included
         let memory = &self.memory;
-        let (clearance, evidence, cluster) =
-            (self.params.guard_clearance_m, self.params.guard_evidence, self.params.guard_cluster);
-        let arc_free = move |curvature: f64, reach: f64, aside: bool| {
-            memory.arc_free(curvature, reach, clearance, evidence, aside, cluster)
-        };
+        let counted = self.params.guard_cells();
+        let arc_free =
+            move |curvature: f64, reach: f64, aside: bool| memory.arc_free(curvature, reach, &counted, aside);
         let output =
             self.fusion.step_guarded(&view, other.as_ref(), Some(ahead), &steered, frame_dt, Some(&arc_free))?;
         self.last_setpoint = output.setpoint;

@@ -663,7 +663,16 @@ pub async fn run_with_camera<C: Camera>(
             let cells: Vec<String> = pipeline.memory().occupied().into_iter().filter(near).map(world).collect();
             let pts: Vec<String> =
                 pipeline.surface_points().iter().map(|p| [p.forward, p.left]).filter(near).map(world).collect();
-            tracing::trace!(target: "flownav::sim::cells", "cells t={t_s:.3} occupied=[{}] points=[{}]", cells.join(" "), pts.join(" "));
+            // the confirmed cells within 0.6 m that still hold evidence, with it: what the
+            // footprint guard may count beside the robot
+            let held: Vec<String> = pipeline
+                .memory()
+                .cells_above(0.05)
+                .into_iter()
+                .filter(|(p, _, confirmed)| *confirmed && p[0].hypot(p[1]) <= 0.6)
+                .map(|(p, e, _)| format!("{}:{e:.2}", world(p)))
+                .collect();
+            tracing::trace!(target: "flownav::sim::cells", "cells t={t_s:.3} occupied=[{}] points=[{}] held=[{}]", cells.join(" "), pts.join(" "), held.join(" "));
         }
         if let Some(trace) = &mut contact_trace {
             trace.observe(t_s, pose, &setup.world, pipeline.memory());

@@ -53,59 +53,42 @@ impl ObstacleMemory {
 
     /// The footprint guard's query ([`crate::mofis::MofisParams::guard_evidence`]): how far
     /// the robot's origin can drive along an arc of `curvature` (1/m, + = left) before its
-    /// footprint, widened by `clearance_m`, reaches the centre of a confirmed cell (one that
-    /// was occupied once) that still has at least `min_evidence` (occupied or fading, wall
-    /// band or not) and that the motion brings nearer; up to `reach_m`. A cell already inside
-    /// the widened footprint stops only motion toward it, so the robot can always drive away
-    /// from what it is beside. `aside`: only the cells out of the camera's field of view count
-    /// (the guard's brake: what is in view is measured again, and the stopping gate's).
-    /// `cluster`: also the confirmed cells joined to such a cell ([`guard_cells`](Self::guard_cells)).
-    pub fn arc_free(
-        &self,
-        curvature: f64,
-        reach_m: f64,
-        clearance_m: f64,
-        min_evidence: f64,
-        aside: bool,
-        cluster: bool,
-    ) -> f64 {
+    /// footprint, widened by `guard.clearance_m`, reaches the centre of a cell the guard counts
+    /// ([`GuardCells`]: confirmed once, still with at least `guard.min_evidence`, occupied or
+    /// fading, wall band or not) that the motion brings nearer; up to `reach_m`. A cell already
+    /// inside the widened footprint stops only motion toward it, so the robot can always drive
+    /// away from what it is beside. `aside`: only the cells out of the camera's field of view
+    /// count (the guard's brake: what is in view is measured again, and the stopping gate's).
+    pub fn arc_free(&self, curvature: f64, reach_m: f64, guard: &GuardCells, aside: bool) -> f64 {
         let arc = |s: f64| match curvature.abs() < 1e-6 {
             true => [s, 0.0],
             false => [(curvature * s).sin() / curvature, (1.0 - (curvature * s).cos()) / curvature],
         };
-        self.path_free(reach_m, arc, clearance_m, min_evidence, aside, cluster)
+        self.path_free(reach_m, arc, guard, aside)
     }
 
     /// [`arc_free`](Self::arc_free) for a straight path along `heading` (rad, robot frame, +
     /// left) after turning to it on the spot, every cell counted, in view or not: where a
     /// standstill escape may drive without the guard stopping it again.
-    pub fn heading_free(&self, heading: f64, reach_m: f64, clearance_m: f64, min_evidence: f64, cluster: bool) -> f64 {
+    pub fn heading_free(&self, heading: f64, reach_m: f64, guard: &GuardCells) -> f64 {
         let (sin, cos) = heading.sin_cos();
-        self.path_free(reach_m, |s| [s * cos, s * sin], clearance_m, min_evidence, false, cluster)
+        self.path_free(reach_m, |s| [s * cos, s * sin], guard, false)
     }
 
     /// How far the robot's origin can drive along the path `at(s)` (its origin after `s` m,
     /// robot frame) before its footprint meets a cell the guard counts or the door's wall
     /// ([`arc_free`](Self::arc_free)).
-    fn path_free(
-        &self,
-        reach_m: f64,
-        at: impl Fn(f64) -> [f64; 2],
-        clearance_m: f64,
-        min_evidence: f64,
-        aside: bool,
-        cluster: bool,
-    ) -> f64 {
+    fn path_free(&self, reach_m: f64, at: impl Fn(f64) -> [f64; 2], guard: &GuardCells, aside: bool) -> f64 {
         if reach_m.is_nan() || reach_m <= 0.0 {
             return 0.0;
         }
         let half_fov = self.half_fov_rad;
-        let body = self.params.robot_radius_m + clearance_m;
+        let body = self.params.robot_radius_m + guard.clearance_m;
         let near = reach_m + body;
         let steps = (reach_m / ARC_STEP_M).ceil().max(1.0) as usize;
         // the door's wall, from the map, counts wherever it is
         let mut free = self.door_free(reach_m, &at);
-        for [f, l] in self.guard_cells(min_evidence, cluster, near) {
+        for [f, l] in self.guard_cells(guard, near) {
             let d0 = f.hypot(l);
             if aside && view_sector(f, l, half_fov).is_some() {
                 continue;
@@ -131,23 +114,58 @@ impl ObstacleMemory {
     /// joined to one of them through confirmed cells (8-neighbours, within `near`), however
     /// faded. An obstacle out of view fades cell by cell, and the traced grazes touched a faded
     /// cell between two held ones: the cluster is held as one shape while any of its cells is.
-    fn guard_cells(&self, min_evidence: f64, cluster: bool, near: f64) -> Vec<[f64; 2]> {
-        let close = |key: (i32, i32)| Some(self.to_robot(key)).filter(|[f, l]| f.hypot(*l) <= near);
-        let held = self.cells.iter().filter(|(_, c)| c.confirmed && c.evidence >= min_evidence);
-        if !cluster {
-            return held.filter_map(|(&key, _)| close(key)).collect();
+    /// With `min_cells` above 1, only the cells of a cluster of at least that many confirmed
+    /// cells (near or not) count: a lone confirmed cell in free space is a mismatched block's
+    /// depth seen twice, and one beside the robot, out of view where nothing clears it, stood
+    /// a braking robot still.
+    fn guard_cells(&self, guard: &GuardCells, near: f64) -> Vec<[f64; 2]> {
+        let close = |key: (i32, i32)| {
+            let [f, l] = self.to_robot(key);
+            f.hypot(l) <= near
+        };
+        let solid = |key: (i32, i32)| self.cluster_reaches(key, guard.min_cells);
+        let held: Vec<(i32, i32)> = self
+            .cells
+            .iter()
+            .filter(|&(&key, c)| c.confirmed && c.evidence >= guard.min_evidence && close(key))
+            .map(|(&key, _)| key)
+            .filter(|&key| solid(key))
+            .collect();
+        if !guard.cluster {
+            return held.into_iter().map(|key| self.to_robot(key)).collect();
         }
-        let mut stack: Vec<(i32, i32)> = held.map(|(&key, _)| key).filter(|&key| close(key).is_some()).collect();
-        let mut joined: BTreeSet<(i32, i32)> = stack.iter().copied().collect();
-        while let Some((i, j)) = stack.pop() {
-            for key in (-1..=1).flat_map(|di| (-1..=1).map(move |dj| (i + di, j + dj))) {
-                if !joined.contains(&key) && self.cells.get(&key).is_some_and(|c| c.confirmed) && close(key).is_some() {
-                    joined.insert(key);
-                    stack.push(key);
+        let mut joined: BTreeSet<(i32, i32)> = held.iter().copied().collect();
+        let mut stack = held;
+        while let Some(key) = stack.pop() {
+            for next in neighbours(key) {
+                if !joined.contains(&next) && self.cells.get(&next).is_some_and(|c| c.confirmed) && close(next) {
+                    joined.insert(next);
+                    stack.push(next);
                 }
             }
         }
         joined.into_iter().map(|key| self.to_robot(key)).collect()
+    }
+
+    /// Whether the confirmed cell `key` is one of a cluster (joined through confirmed
+    /// 8-neighbours) of at least `n` confirmed cells.
+    fn cluster_reaches(&self, key: (i32, i32), n: usize) -> bool {
+        if n <= 1 {
+            return true;
+        }
+        let mut seen = BTreeSet::from([key]);
+        let mut stack = vec![key];
+        while let Some(at) = stack.pop() {
+            for next in neighbours(at) {
+                if self.cells.get(&next).is_some_and(|c| c.confirmed) && seen.insert(next) {
+                    if seen.len() >= n {
+                        return true;
+                    }
+                    stack.push(next);
+                }
+            }
+        }
+        false
     }
 
     /// How far a band `half` wide (m) either side of `heading` (rad, robot frame) is free of
@@ -196,4 +214,23 @@ impl ObstacleMemory {
         let (s, c) = heading.sin_cos();
         seen.min(self.door_free(lookahead_m, |d| [d * c, d * s]))
     }
+}
+
+/// The eight cells around `(i, j)`.
+fn neighbours((i, j): (i32, i32)) -> impl Iterator<Item = (i32, i32)> {
+    (-1..=1).flat_map(move |di| (-1..=1).map(move |dj| (i + di, j + dj))).filter(move |&k| k != (i, j))
+}
+
+/// What the footprint guard counts, and how close it lets the robot come
+/// ([`ObstacleMemory::arc_free`]; the `guard_*` fields of [`crate::mofis::MofisParams`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GuardCells {
+    /// Kept beyond the robot's radius, m.
+    pub clearance_m: f64,
+    /// The confirmed cells with at least this evidence are held.
+    pub min_evidence: f64,
+    /// Also every confirmed cell joined to a held one, however faded.
+    pub cluster: bool,
+    /// Only cells of a cluster of at least this many confirmed cells count (1: every cell).
+    pub min_cells: usize,
 }

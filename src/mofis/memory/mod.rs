@@ -50,6 +50,7 @@ mod steer;
 mod tests;
 mod threats;
 
+pub use free::GuardCells;
 pub use params::MemoryParams;
 pub use threats::nearer;
 

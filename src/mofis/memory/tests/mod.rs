@@ -20,6 +20,11 @@ fn step(m: &mut ObstacleMemory, odo: BodyVelocity, dt: f64, points: &[SurfacePoi
     m.update(odo, dt, points, measured);
 }
 
+/// What the guard counts: the default clearance, `min_evidence`, clusters or not, every cell.
+fn guard(min_evidence: f64, cluster: bool) -> GuardCells {
+    GuardCells { clearance_m: 0.04, min_evidence, cluster, min_cells: 1 }
+}
+
 /// Puts a cell at (`forward`, `left`) of the robot with `evidence`, confirmed or not.
 fn put(m: &mut ObstacleMemory, forward: f64, left: f64, evidence: f64, confirmed: bool) {
     let key = m.cell_at(forward, left);
@@ -28,7 +33,7 @@ fn put(m: &mut ObstacleMemory, forward: f64, left: f64, evidence: f64, confirmed
 
 #[test]
 fn the_guard_sees_an_arc_reach_a_lingering_cell() {
-    let (reach, clear, min) = (0.4, 0.04, 0.3);
+    let (reach, min) = (0.4, 0.3);
     let mut m = memory();
     // a faded cell ahead on the left, its centre at (0.35, 0.15): below the occupied
     // threshold, so no threat and no stop, but it was confirmed once
@@ -36,23 +41,23 @@ fn the_guard_sees_an_arc_reach_a_lingering_cell() {
     assert!(!m.threat().present);
     // straight on, the footprint (0.18 + 0.04 m) reaches the centre when the origin is
     // √(0.22² − 0.15²) = 0.161 m short of it: after 0.189 m, in steps of 2 cm
-    let straight = m.arc_free(0.0, reach, clear, min, false, false);
+    let straight = m.arc_free(0.0, reach, &guard(min, false), false);
     assert!((straight - 0.18).abs() < 1e-9, "{straight}");
     // turning left toward it is blocked sooner, turning right (radius 0.33 m) bends clear
-    assert!(m.arc_free(1.0, reach, clear, min, false, false) < straight);
-    assert_eq!(m.arc_free(-3.0, reach, clear, min, false, false), reach);
+    assert!(m.arc_free(1.0, reach, &guard(min, false), false) < straight);
+    assert_eq!(m.arc_free(-3.0, reach, &guard(min, false), false), reach);
     // one that has faded below the guard's evidence, or was never confirmed (one noisy
     // point), does not count
     let mut m = memory();
     put(&mut m, 0.35, 0.15, 0.25, true);
     put(&mut m, 0.35, 0.05, 1.0, false);
-    assert_eq!(m.arc_free(0.0, reach, clear, min, false, false), reach);
+    assert_eq!(m.arc_free(0.0, reach, &guard(min, false), false), reach);
     // a cell already inside the footprint blocks only the motion toward it
     let mut m = memory();
     put(&mut m, -0.05, 0.15, 2.0, true);
-    assert_eq!(m.arc_free(0.0, reach, clear, min, false, false), reach, "driving away from what is beside");
+    assert_eq!(m.arc_free(0.0, reach, &guard(min, false), false), reach, "driving away from what is beside");
     put(&mut m, 0.1, -0.1, 2.0, true);
-    assert_eq!(m.arc_free(0.0, reach, clear, min, false, false), 0.0, "driving into what is ahead inside it");
+    assert_eq!(m.arc_free(0.0, reach, &guard(min, false), false), 0.0, "driving into what is ahead inside it");
     // two votes confirm a cell, and it stays confirmed as it fades
     let mut m = memory();
     step(&mut m, STILL, 0.0, &[pt(0.35, 0.15)]);
@@ -60,37 +65,37 @@ fn the_guard_sees_an_arc_reach_a_lingering_cell() {
     step(&mut m, STILL, 0.0, &[pt(0.35, 0.15)]);
     assert!(m.cells.values().all(|c| c.confirmed));
     m.cells.values_mut().for_each(|c| c.evidence = 0.4);
-    assert!(m.arc_free(0.0, reach, clear, min, false, false) < reach);
+    assert!(m.arc_free(0.0, reach, &guard(min, false), false) < reach);
     // `aside`: only the cells out of the camera's view count, the brake's query. The cell at
     // (0.35, 0.15) is 0.41 rad off the heading, in view (±0.47 rad); one at (0.25, 0.15),
     // 0.54 rad off, is out of it, and the footprint reaches its centre after
     // 0.25 − √(0.22² − 0.15²) = 0.089 m: at the fifth 2 cm step
     let mut m = memory();
     put(&mut m, 0.35, 0.15, 0.5, true);
-    assert!(m.arc_free(0.0, reach, clear, min, false, false) < reach);
-    assert_eq!(m.arc_free(0.0, reach, clear, min, true, false), reach, "in view");
+    assert!(m.arc_free(0.0, reach, &guard(min, false), false) < reach);
+    assert_eq!(m.arc_free(0.0, reach, &guard(min, false), true), reach, "in view");
     put(&mut m, 0.25, 0.15, 0.5, true);
-    let aside = m.arc_free(0.0, reach, clear, min, true, false);
+    let aside = m.arc_free(0.0, reach, &guard(min, false), true);
     assert!((aside - 0.08).abs() < 1e-9, "{aside}");
 }
 
 #[test]
 fn the_guard_holds_a_cluster_while_one_of_its_cells_is_held() {
-    let (reach, clear, min) = (0.4, 0.04, 0.3);
+    let (reach, min) = (0.4, 0.3);
     let mut m = memory();
     // a chain of neighbouring confirmed cells 0.35 m ahead, 0.05, 0.15 and 0.25 m left of the
     // heading, and one more at 0.45 m, not joined (a cell apart); all faded below the guard
     for left in [0.05, 0.15, 0.25, 0.45] {
         put(&mut m, 0.35, left, 0.1, true);
     }
-    assert_eq!(m.arc_free(0.0, reach, clear, min, false, false), reach, "all faded");
-    assert_eq!(m.arc_free(0.0, reach, clear, min, false, true), reach, "no cell of the cluster held");
+    assert_eq!(m.arc_free(0.0, reach, &guard(min, false), false), reach, "all faded");
+    assert_eq!(m.arc_free(0.0, reach, &guard(min, true), false), reach, "no cell of the cluster held");
     // the chain's outer end is held; 0.25 m left it is beside the footprint's path (0.22 m)
     put(&mut m, 0.35, 0.25, 1.0, true);
-    assert_eq!(m.arc_free(0.0, reach, clear, min, false, false), reach, "the held cell is off the path");
+    assert_eq!(m.arc_free(0.0, reach, &guard(min, false), false), reach, "the held cell is off the path");
     // held as one cluster, the cell 0.05 m left blocks once the footprint reaches its centre:
     // after 0.35 − √(0.22² − 0.05²) = 0.136 m, at the seventh 2 cm step
-    let held = m.arc_free(0.0, reach, clear, min, false, true);
+    let held = m.arc_free(0.0, reach, &guard(min, true), false);
     assert!((held - 0.12).abs() < 1e-9, "{held}");
     // a cell never confirmed (one noisy point) joins no cluster: the held cell 0.15 m left
     // blocks after 0.35 − √(0.22² − 0.15²) = 0.189 m either way
@@ -98,9 +103,34 @@ fn the_guard_holds_a_cluster_while_one_of_its_cells_is_held() {
     put(&mut m, 0.35, 0.05, 0.1, false);
     put(&mut m, 0.35, 0.15, 1.0, true);
     for cluster in [false, true] {
-        let free = m.arc_free(0.0, reach, clear, min, false, cluster);
+        let free = m.arc_free(0.0, reach, &guard(min, cluster), false);
         assert!((free - 0.18).abs() < 1e-9, "{cluster}: {free}");
     }
+}
+
+#[test]
+fn the_guard_can_count_only_clusters_of_some_size() {
+    let reach = 0.4;
+    let guard = |min_cells| GuardCells { min_cells, ..guard(0.3, false) };
+    let mut m = memory();
+    // a lone confirmed cell ahead, 0.15 m left: the footprint reaches its centre after
+    // 0.35 − √(0.22² − 0.15²) = 0.189 m, at the tenth 2 cm step, unless lone cells are left out
+    put(&mut m, 0.35, 0.15, 1.0, true);
+    let lone = m.arc_free(0.0, reach, &guard(1), false);
+    assert!((lone - 0.18).abs() < 1e-9, "{lone}");
+    assert_eq!(m.arc_free(0.0, reach, &guard(2), false), reach, "a lone cell");
+    // a faded confirmed neighbour diagonally beyond it, off the path, makes a cluster of two
+    put(&mut m, 0.45, 0.25, 0.1, true);
+    assert_eq!(m.arc_free(0.0, reach, &guard(2), false), lone, "a cluster of two");
+    assert_eq!(m.arc_free(0.0, reach, &guard(3), false), reach, "not of three");
+    // a cell that was never confirmed (one noisy point) adds nothing to a cluster
+    put(&mut m, 0.45, 0.35, 2.0, false);
+    assert_eq!(m.arc_free(0.0, reach, &guard(3), false), reach, "unconfirmed");
+    // the cluster counts however far it reaches: a chain of confirmed cells 2 m long behind it
+    for k in 1..=20 {
+        put(&mut m, 0.45 + 0.1 * k as f64, 0.25, 0.1, true);
+    }
+    assert_eq!(m.arc_free(0.0, reach, &guard(20), false), lone, "a wall's cluster");
 }
 
 #[test]
@@ -335,20 +365,20 @@ fn a_ray_over_a_low_box_does_not_clear_it() {
 
 #[test]
 fn a_heading_is_free_as_the_straight_arc_turned_to_it() {
-    let (reach, clear, min) = (1.0, 0.04, 0.3);
+    let (reach, min) = (1.0, 0.3);
     let mut m = memory();
     // a faded but guard-strength cell 0.5 m to the left, and a phantom never confirmed ahead
     put(&mut m, 0.05, 0.55, 0.5, true);
     put(&mut m, 0.55, 0.05, 2.0, false);
     // straight ahead the path is free (the phantom joins nothing) and agrees with the arc
-    assert_eq!(m.heading_free(0.0, reach, clear, min, true), m.arc_free(0.0, reach, clear, min, false, true));
-    assert_eq!(m.heading_free(0.0, reach, clear, min, false), reach);
+    assert_eq!(m.heading_free(0.0, reach, &guard(min, true)), m.arc_free(0.0, reach, &guard(min, true), false));
+    assert_eq!(m.heading_free(0.0, reach, &guard(min, false)), reach);
     // turned left to face the cell, the footprint (0.22 m) reaches its centre after
     // 0.55 − √(0.22² − 0.05²) = 0.336 m: at the sixteenth 2 cm step; in view or not, it counts
-    let left = m.heading_free(std::f64::consts::FRAC_PI_2, reach, clear, min, false);
+    let left = m.heading_free(std::f64::consts::FRAC_PI_2, reach, &guard(min, false));
     assert!((left - 0.32).abs() < 1e-9, "{left}");
     // to the right, away from it, the way is free
-    assert_eq!(m.heading_free(-std::f64::consts::FRAC_PI_2, reach, clear, min, false), reach);
+    assert_eq!(m.heading_free(-std::f64::consts::FRAC_PI_2, reach, &guard(min, false)), reach);
 }
 
 mod paths;

@@ -299,12 +299,14 @@ fn the_doors_wall_from_the_map_bounds_the_steering_the_guard_and_the_stop() {
     m.set_doorway(Some(Doorway { centre_m: [1.0, 0.0], angle_rad: 0.0, half_width_m: 0.45 }));
     assert_eq!(m.free_in_lane(0.0, 1.5), 1.5);
     assert_eq!(m.door_free_ahead(1.5), 1.5);
-    assert_eq!(m.arc_free(0.0, 1.5, 0.04, 0.3, false, false), 1.5);
+    assert_eq!(m.arc_free(0.0, 1.5, &super::guard(0.3, false), false), 1.5);
     // 0.35 m left of the axis: the footprint meets the left jamb's edge, 0.1 m beside the
     // path, sqrt(body² − 0.1²) before the wall
     m.set_doorway(Some(Doorway { centre_m: [1.0, -0.35], angle_rad: 0.0, half_width_m: 0.45 }));
     let jamb = 1.0 - (body * body - 0.1f64 * 0.1).sqrt();
-    for free in [m.free_in_lane(0.0, 1.5), m.door_free_ahead(1.5), m.arc_free(0.0, 1.5, 0.04, 0.3, false, false)] {
+    for free in
+        [m.free_in_lane(0.0, 1.5), m.door_free_ahead(1.5), m.arc_free(0.0, 1.5, &super::guard(0.3, false), false)]
+    {
         assert!(free <= jamb && free > jamb - step - 1e-9, "{free} vs {jamb}");
     }
     // the steering turns toward the opening's middle
