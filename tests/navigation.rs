@@ -791,33 +791,36 @@ mod mofis {
         mofis().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&record)).unwrap();
         assert!((asked.get() - (0.35 + 0.35 * 0.35 / 1.6)).abs() < 1e-12, "{}", asked.get());
         // it bends by at most guard_max_bend (0.5 rad/s): the arcs are clear only from a
-        // curvature of 0.6 / 0.35 right on, out of the bend's reach at full speed, and by
-        // default the command passes unchanged
+        // curvature of 0.6 / 0.35 right on, out of the bend's reach at full speed, and a guard
+        // that only bends passes the command unchanged
         let far_right = |curvature: f64, reach: f64, _: bool| if curvature * 0.35 <= -0.6 { reach } else { 0.05 };
-        let mut m = mofis();
+        let bend_only = MofisParams { guard_slow: false, guard_brake: false, ..MofisParams::default() };
+        let bend = || Fusion::load(bend_only.clone(), ControlLimits::default()).unwrap();
+        let mut m = bend();
         let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
         assert_eq!(out.fused, free.fused, "{out:?}");
         // with guard_slow, at 0.7 of the speed the same 0.5 rad/s turns tighter
         // (0.5 / 0.245 > 0.6 / 0.35), and that is the fastest clear arc (0.35 rad/s at
         // 0.245 m/s is not)
-        let slower = MofisParams { guard_slow: true, ..MofisParams::default() };
+        let slower = MofisParams { guard_slow: true, ..bend_only.clone() };
         let mut m = Fusion::load(slower.clone(), ControlLimits::default()).unwrap();
         let slow = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&far_right)).unwrap();
         assert!((slow.fused.v - 0.7 * 0.35).abs() < 1e-12, "{slow:?}");
         assert!((slow.fused.omega + 0.5 * max_turn).abs() < 1e-12, "{slow:?}");
         // blocked whichever way and however slow, 5 cm out, by what is beside (out of view):
-        // unchanged by default and with guard_slow alone; with guard_brake it brakes to the
-        // speed that stops in 5 cm, √(2 · 0.8 · 0.05) = 0.283 m/s, on the command's own arc
-        // (all equally free)
+        // unchanged by a guard that only bends and with guard_slow alone; with guard_brake (the
+        // default) it brakes to the speed that stops in 5 cm, √(2 · 0.8 · 0.05) = 0.283 m/s, on
+        // the command's own arc (all equally free)
         let beside = |_: f64, _: f64, _: bool| 0.05;
-        let mut m = mofis();
+        let mut m = bend();
         let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert_eq!(out.fused, free.fused, "{out:?}");
         let mut m = Fusion::load(slower.clone(), ControlLimits::default()).unwrap();
         let out = m.step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert_eq!(out.fused, free.fused, "{out:?}");
         let braking = MofisParams { guard_brake: true, ..slower };
-        let brake = || Fusion::load(braking.clone(), ControlLimits::default()).unwrap();
+        assert_eq!(braking, MofisParams::default());
+        let brake = mofis;
         let out = brake().step_guarded(&Perception::default(), None, None, &straight, SETTLED, Some(&beside)).unwrap();
         assert!((out.fused.v - (2.0f64 * 0.8 * 0.05).sqrt()).abs() < 1e-12, "{out:?}");
         assert_eq!(out.fused.omega, 0.0, "{out:?}");

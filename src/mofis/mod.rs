@@ -108,28 +108,25 @@ pub struct MofisParams {
     /// the memory did not hold when the bend had no limit.
     pub guard_max_bend: f64,
     /// ... and when no turn rate within that bend is clear, try the same at 0.7, 0.5, 0.35 and
-    /// 0.25 of the speed, where the same bend turns tighter and the reach is shorter. Off by
-    /// default: in the simulated missions it left more runs unarrived and more with contact than
-    /// without it (docs/missions-history.md) ...
+    /// 0.25 of the speed, where the same bend turns tighter and the reach is shorter ...
     pub guard_slow: bool,
     /// ... and when none of those is clear either: brake to the speed from which the robot
     /// stops (at `stop_decel_mps2`) before its footprint reaches a cell out of the camera's
-    /// view on the freest of the full-speed arcs within the bend, and take that arc. Off by
-    /// default: the guard saw the traced contacts coming 1–1.5 s ahead and passed the command
-    /// on at 0.35 m/s, and braking (with `guard_slow`) removed those contacts, but in other
-    /// missions it left runs unarrived and with contact where there were none without it: the
-    /// robot stood in front of faded cells beside it (docs/missions-history.md). With it the
-    /// standstill escape takes only headings free of the guard's cells too, or it turns the
-    /// robot toward what the brake stands it in front of again.
+    /// view on the freest of the full-speed arcs within the bend, and take that arc. Bending
+    /// only, the guard saw the traced contacts coming 1–1.5 s ahead and passed the command
+    /// on at 0.35 m/s; braking removes those contacts. With it the standstill escape takes
+    /// only headings free of the guard's cells too, or it turns the robot toward what the
+    /// brake stands it in front of again (docs/navigation.md, *The footprint guard*).
     pub guard_brake: bool,
     /// The guard counts, besides the cells it holds, every confirmed cell joined to one of them
     /// (however faded): each cluster of cells is held as one obstacle while any of its cells
-    /// is ([`memory::ObstacleMemory::arc_free`]). Off by default (docs/missions-history.md).
+    /// is ([`memory::ObstacleMemory::arc_free`]): traced grazes touched a faded cell between
+    /// two held ones.
     pub guard_cluster: bool,
     /// The guard counts only the cells of a cluster of at least this many confirmed cells
     /// (joined through confirmed 8-neighbours): a lone confirmed cell in free space is a
     /// mismatched block's depth seen twice, and with `guard_brake` one beside the robot, out
-    /// of view where nothing clears it, stood the robot still. 1 (the default): every cell.
+    /// of view where nothing clears it, stood the robot still. 1: every cell.
     pub guard_min_cells: usize,
 }
 
@@ -152,10 +149,10 @@ impl Default for MofisParams {
             guard_clearance_m: 0.04,
             guard_horizon_s: 1.0,
             guard_max_bend: 0.5,
-            guard_slow: false,
-            guard_brake: false,
-            guard_cluster: false,
-            guard_min_cells: 1,
+            guard_slow: true,
+            guard_brake: true,
+            guard_cluster: true,
+            guard_min_cells: 2,
         }
     }
 }

@@ -244,12 +244,13 @@ mod tests {
     }
 
     #[test]
-    fn the_guard_brake_profile_loads_and_changes_only_the_guard_and_the_fade() {
-        let cfg = Config::load(concat!(env!("CARGO_MANIFEST_DIR"), "/config/guard-brake.toml")).unwrap();
+    fn the_bend_only_guard_loads_and_changes_only_the_guard_and_the_fade() {
+        let cfg = Config::load(concat!(env!("CARGO_MANIFEST_DIR"), "/config/guard-bend.toml")).unwrap();
         let mut expected = Config::default();
         let m = &mut expected.mofis;
-        (m.guard_slow, m.guard_brake, m.guard_cluster, m.guard_min_cells) = (true, true, true, 2);
-        m.memory.out_half_life_s = 60.0;
+        assert_ne!((m.guard_slow, m.guard_brake, m.guard_cluster, m.guard_min_cells), (false, false, false, 1));
+        (m.guard_slow, m.guard_brake, m.guard_cluster, m.guard_min_cells) = (false, false, false, 1);
+        m.memory.out_half_life_s = 12.0;
         assert_eq!(cfg, expected);
     }
 }

@@ -101,7 +101,7 @@ impl Default for MemoryParams {
             half_life_aside_s: 4.0,
             out_half_life_m: 1.5,
             out_half_life_rad: 6.0,
-            out_half_life_s: 12.0,
+            out_half_life_s: 60.0,
             contact_half_life_m: 1.0,
             contact_half_life_s: 15.0,
             occupied: 1.5,

@@ -262,19 +262,19 @@ fn out_of_view_a_cell_fades_with_the_motion_not_while_the_robot_stands_beside_it
     }
     assert_eq!(m.occupied().len(), 1);
     let before = m.cells.values().next().unwrap().evidence;
-    // standing beside it for 10 s: 0.5^(10 / 12) of the evidence stays (the 4 s half-life
-    // of a cell in view would leave 0.18 of it, below `occupied`)
+    // standing beside it for 10 s: 0.5^(10 s / out_half_life_s) of the evidence stays (the
+    // 4 s half-life of a cell in view would leave 0.18 of it, below `occupied`)
     for _ in 0..100 {
         step(&mut m, STILL, 0.1, &[]);
     }
     let after = m.cells.values().next().unwrap().evidence;
     assert!((after / before - 0.5f64.powf(10.0 / p.out_half_life_s)).abs() < 1e-9, "{before} → {after}");
     assert_eq!(m.occupied().len(), 1, "still there after 10 s standing beside it");
-    // driving on 1.5 m (it stays out of view, beside and then behind) halves it once more
-    let v = BodyVelocity { v: 1.5, omega: 0.0 };
+    // driving on 3 m in 1 s (it stays out of view, beside and then behind) halves it twice more
+    let v = BodyVelocity { v: 3.0, omega: 0.0 };
     step(&mut m, v, 1.0, &[]);
     let driven = m.cells.values().next().unwrap().evidence;
-    let k = 0.5f64.powf(1.5 / p.out_half_life_m + 1.0 / p.out_half_life_s);
+    let k = 0.5f64.powf(3.0 / p.out_half_life_m + 1.0 / p.out_half_life_s);
     assert!((driven / after - k).abs() < 1e-9, "{after} → {driven}");
     assert!(m.occupied().is_empty());
 }
