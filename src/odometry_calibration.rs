@@ -138,22 +138,28 @@ impl OdometryCalibration {
 mod tests {
     use super::*;
 
-    #[test]
-    fn the_fit_recovers_a_wheel_base_error_and_a_bend_from_noisy_pairs() {
-        // a base that turns 4 % less than it reports and bends 0.013 rad/m (0.2 % radius
-        // difference on a 0.3 m wheel base), seen through ±1 mrad of measurement noise
-        let (a, b) = (-0.04, 0.013);
+    /// The fit after 600 pairs of varying turns and drives (24 m) on a base with turn scale
+    /// error `a` and bend `b`, each pair's measured yaw error carrying `noise()`.
+    fn fitted(a: f64, b: f64, mut noise: impl FnMut() -> f64) -> OdometryCalibration {
         let mut cal = OdometryCalibration::default();
-        let mut state = 12345u64;
-        let mut noise = || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2e-3
-        };
         for k in 0..600 {
             let turn = 0.05 * ((k as f64) * 0.37).sin();
             let drive = 0.04 + 0.01 * ((k as f64) * 0.11).cos();
             cal.observe(turn, drive, a * turn + b * drive + noise());
         }
+        cal
+    }
+
+    #[test]
+    fn the_fit_recovers_a_wheel_base_error_and_a_bend_from_noisy_pairs() {
+        // a base that turns 4 % less than it reports and bends 0.013 rad/m (0.2 % radius
+        // difference on a 0.3 m wheel base), seen through ±1 mrad of measurement noise
+        let (a, b) = (-0.04, 0.013);
+        let mut state = 12345u64;
+        let cal = fitted(a, b, || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 2e-3
+        });
         assert!((cal.scale() - a).abs() < 0.01, "scale {} want {a}", cal.scale());
         assert!((cal.bend_rad_m() - b).abs() < 0.002, "bend {} want {b}", cal.bend_rad_m());
         assert_eq!(cal.pairs(), 600);
@@ -165,12 +171,7 @@ mod tests {
         // straight ticks on such a base curve it right by 0.04 / 0.33 m = 0.12 rad/m, and a
         // 3 % wheel base error with slip shortens every turn by 5 %: within what is learned
         let (a, b) = (-0.05, -0.04 / 0.33);
-        let mut cal = OdometryCalibration::default();
-        for k in 0..600 {
-            let turn = 0.05 * ((k as f64) * 0.37).sin();
-            let drive = 0.04 + 0.01 * ((k as f64) * 0.11).cos();
-            cal.observe(turn, drive, a * turn + b * drive);
-        }
+        let cal = fitted(a, b, || 0.0);
         // after 24 m the prior still holds the fit a few per cent short of the truth
         assert!((cal.scale() - a).abs() < 0.1 * a.abs(), "scale {} want {a}", cal.scale());
         assert!((cal.bend_rad_m() - b).abs() < 0.1 * b.abs(), "bend {} want {b}", cal.bend_rad_m());
