@@ -10,8 +10,11 @@
 //!    and marks what they pushed against in the memory;
 //! 3. the escape ([`escape`]) turns to a free heading after a standstill;
 //! 4. the spot turn ([`SpotTurn`]) turns to a goal far off the heading on the spot;
-//! 5. the steering picks the free heading nearest the goal, kept off side surfaces
-//!    ([`memory::ObstacleMemory::steer`], [`memory::ObstacleMemory::centring`]);
+//! 5. the steering keeps the goal's heading, kept off side surfaces
+//!    ([`memory::ObstacleMemory::centring`]), while its straight path is free; where it is not,
+//!    it follows the cheapest way the footprint fits through the memory's grid
+//!    ([`memory::ObstacleMemory::plan_heading`]; with `planner` off, or where the way does not
+//!    leave the robot's cell, the free heading nearest the goal, [`memory::ObstacleMemory::steer`]);
 //! 6. the stopping gate caps the speed to what stops short of the memory's cells ([`Ahead`]);
 //! 7. the fuzzy core ([`fusion`]): `rules/mofis/avoidance.toml` turns the threats into a speed
 //!    factor and an avoidance turn, `rules/mofis/fusion.toml` weighs avoidance against the goal,
@@ -45,7 +48,7 @@ use crate::pafsis::{Doorway, Goal, GoalStatus, Lane};
 use crate::perception::{Obstacle, Perception};
 use escape::Escape;
 use hal::{BodyVelocity, Calibration};
-use memory::ObstacleMemory;
+use memory::{ObstacleMemory, PlanTarget};
 use serde::{Deserialize, Serialize};
 use stall::{Manoeuvre, StallRecovery};
 use std::path::PathBuf;
@@ -128,6 +131,13 @@ pub struct MofisParams {
     /// mismatched block's depth seen twice, and with `guard_brake` one beside the robot, out
     /// of view where nothing clears it, stood the robot still. 1: every cell.
     pub guard_min_cells: usize,
+    /// Where the straight path toward the goal is not free (of the cells the steering avoids,
+    /// inside the lane, or of the cells the guard counts), drive along the cheapest way through
+    /// the memory's grid that the footprint fits ([`memory::ObstacleMemory::plan_heading`])
+    /// instead of the free straight ray nearest the goal ([`memory::ObstacleMemory::steer`]):
+    /// the rays know no way round a box, and their longest one led into gaps the guard then
+    /// stood the robot in front of.
+    pub planner: bool,
 }
 
 impl Default for MofisParams {
@@ -153,6 +163,7 @@ impl Default for MofisParams {
             guard_brake: true,
             guard_cluster: true,
             guard_min_cells: 2,
+            planner: false,
         }
     }
 }
@@ -240,6 +251,9 @@ pub enum MofisError {
 const STEER_LOOKAHEAD_M: f64 = 1.5;
 const STEER_MAX_RAD: f64 = 0.7;
 const STEER_STEP_RAD: f64 = 0.05;
+/// Planning past what blocks the straight path ([`ObstacleMemory::plan_heading`]): the way ends
+/// as near as it can to the goal's bearing this far ahead (or the stop, when nearer), m.
+const PLAN_REACH_M: f64 = 3.0;
 /// Keeping off side surfaces ([`ObstacleMemory::centring`]): cells up to this far ahead and this
 /// far to the side count, m; the correction's lookahead, m, and its largest angle, rad.
 const CENTRE_WINDOW_M: f64 = 1.5;
@@ -443,7 +457,22 @@ impl Mofis {
             true => {
                 let centred = goal.angle_rad
                     + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                let angle_rad = self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD);
+                // the planner where the straight path is not free: of what the steering avoids,
+                // or of what the guard counts (the wall band's cells and faded ones too)
+                let counted = self.params.guard_cells();
+                let blocked = || {
+                    self.memory.free_in_lane(centred, lookahead) < lookahead
+                        || self.memory.heading_free(centred, lookahead, &counted) < lookahead
+                };
+                let planned = match self.params.planner && blocked() {
+                    true => {
+                        let target = PlanTarget { bearing_rad: centred, distance_m: PLAN_REACH_M.min(stop_ahead) };
+                        self.memory.plan_heading(target, &counted)
+                    }
+                    false => None,
+                };
+                let angle_rad =
+                    planned.unwrap_or_else(|| self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD));
                 Goal { angle_rad, ..goal }
             }
             false => goal,

@@ -6,7 +6,7 @@ use std::collections::BTreeSet;
 impl ObstacleMemory {
     /// How far the robot's origin at `p` (robot frame, m) is from the door's wall either side
     /// of the opening ([`set_doorway`](Self::set_doorway)); infinite without a door.
-    fn door_wall_distance(&self, [f, l]: [f64; 2]) -> f64 {
+    pub(super) fn door_wall_distance(&self, [f, l]: [f64; 2]) -> f64 {
         let Some(door) = &self.doorway else { return f64::INFINITY };
         let (s, c) = door.angle_rad.sin_cos();
         let (df, dl) = (f - door.centre_m[0], l - door.centre_m[1]);
@@ -118,7 +118,7 @@ impl ObstacleMemory {
     /// cells (near or not) count: a lone confirmed cell in free space is a mismatched block's
     /// depth seen twice, and one beside the robot, out of view where nothing clears it, stood
     /// a braking robot still.
-    fn guard_cells(&self, guard: &GuardCells, near: f64) -> Vec<[f64; 2]> {
+    pub(super) fn guard_cells(&self, guard: &GuardCells, near: f64) -> Vec<[f64; 2]> {
         let close = |key: (i32, i32)| {
             let [f, l] = self.to_robot(key);
             f.hypot(l) <= near

@@ -45,6 +45,7 @@ use std::collections::BTreeMap;
 mod free;
 mod grid;
 mod params;
+mod plan;
 mod steer;
 #[cfg(test)]
 mod tests;
@@ -52,6 +53,7 @@ mod threats;
 
 pub use free::GuardCells;
 pub use params::MemoryParams;
+pub use plan::{PlanTarget, Way};
 pub use threats::nearer;
 
 /// The robot's pose in the memory's (odometry) frame.

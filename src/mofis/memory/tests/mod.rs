@@ -382,3 +382,4 @@ fn a_heading_is_free_as_the_straight_arc_turned_to_it() {
 }
 
 mod paths;
+mod planning;
