@@ -460,19 +460,19 @@ impl Mofis {
                 // the planner where the straight path is not free: of what the steering avoids,
                 // or of what the guard counts (the wall band's cells and faded ones too)
                 let counted = self.params.guard_cells();
-                let blocked = || {
-                    self.memory.free_in_lane(centred, lookahead) < lookahead
-                        || self.memory.heading_free(centred, lookahead, &counted) < lookahead
-                };
-                let planned = match self.params.planner && blocked() {
+                let steer = || self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD);
+                let angle_rad = match self.params.planner {
+                    false => steer(),
+                    true if self.memory.free_in_lane(centred, lookahead) >= lookahead
+                        && self.memory.heading_free(centred, lookahead, &counted) >= lookahead =>
+                    {
+                        centred
+                    }
                     true => {
                         let target = PlanTarget { bearing_rad: centred, distance_m: PLAN_REACH_M.min(stop_ahead) };
-                        self.memory.plan_heading(target, &counted)
+                        self.memory.plan_heading(target, &counted).unwrap_or_else(steer)
                     }
-                    false => None,
                 };
-                let angle_rad =
-                    planned.unwrap_or_else(|| self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD));
                 Goal { angle_rad, ..goal }
             }
             false => goal,

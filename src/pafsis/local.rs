@@ -451,6 +451,17 @@ pub struct Lane {
     pub half_width_m: f64,
 }
 
+impl Lane {
+    /// How far a point of the robot's frame (ahead, left; m) is left of the corridor's centre
+    /// line, m. The lane's left is (−sin, cos) of its angle; the returned function takes those
+    /// once, for the many points of a grid.
+    pub fn offset_of(&self) -> impl Fn([f64; 2]) -> f64 + Copy + use<> {
+        let (s, c) = self.angle_rad.sin_cos();
+        let left = self.left_m;
+        move |[f, l]| left - f * s + l * c
+    }
+}
+
 /// The door the robot is going through, in the robot's frame, from the map's opening
 /// ([`crate::pafsis::map::Action::opening`]) and the dead-reckoned pose: the steering keeps the
 /// robot's footprint off the wall either side of it

@@ -195,7 +195,7 @@ impl ObstacleMemory {
     /// widened by `lane_margin_m`, leaves `lane` going outward, up to `lookahead_m`. A robot
     /// already outside is free to drive back in.
     pub fn lane_free_distance(&self, lane: &Lane, heading: f64, lookahead_m: f64) -> f64 {
-        let band = (lane.half_width_m - self.params.robot_radius_m - self.params.lane_margin_m).max(0.0);
+        let band = self.lane_band(lane);
         let rate = (heading - lane.angle_rad).sin();
         let exit = match rate {
             r if r > 1e-9 => (band - lane.left_m) / r,
@@ -203,6 +203,12 @@ impl ObstacleMemory {
             _ => f64::INFINITY,
         };
         exit.clamp(0.0, lookahead_m)
+    }
+
+    /// How far either side of `lane`'s centre line the robot's origin may go: the footprint,
+    /// widened by `lane_margin_m`, stays inside the corridor, m.
+    pub(super) fn lane_band(&self, lane: &Lane) -> f64 {
+        (lane.half_width_m - self.params.robot_radius_m - self.params.lane_margin_m).max(0.0)
     }
 
     /// How far the path along `heading` (rad, robot frame) is free, up to `lookahead_m`: of

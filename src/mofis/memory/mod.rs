@@ -183,15 +183,10 @@ impl ObstacleMemory {
     /// inside the walls of the current lane, or beyond them ([`MemoryParams::wall_band_m`]).
     /// A cell marked by a contact never does: what the robot touched is there, wall or not.
     fn banded_cells(&self) -> impl Iterator<Item = ([f64; 2], bool)> + '_ {
-        let wall = self.walled_lane().map(|l| {
-            let (s, c) = l.angle_rad.sin_cos();
-            (l, s, c, l.half_width_m - self.params.wall_band_m)
-        });
-        self.occupied_entries().map(move |([f, l], cell)| {
-            // the cell's offset left of the corridor's centre line
-            let banded =
-                !cell.contact && wall.is_some_and(|(lane, s, c, inner)| (lane.left_m - f * s + l * c).abs() >= inner);
-            ([f, l], banded)
+        let wall = self.walled_lane().map(|l| (l.offset_of(), l.half_width_m - self.params.wall_band_m));
+        self.occupied_entries().map(move |(at, cell)| {
+            let banded = !cell.contact && wall.is_some_and(|(offset, inner)| offset(at).abs() >= inner);
+            (at, banded)
         })
     }
 

@@ -98,18 +98,14 @@ impl ObstacleMemory {
                 stamp(&mut cost, cell, soft, true);
             }
         }
-        // the lane's band and the door's wall, from the map
-        let body = p.robot_radius_m + p.lane_margin_m;
-        let door0 = self.door_wall_distance([0.0, 0.0]);
+        // the lane's band (or as far out as the robot already is) and the door's wall, from the map
+        let lane = self.lane.as_ref().map(|lane| (lane.offset_of(), self.lane_band(lane).max(lane.left_m.abs())));
+        let door = within(self.door_wall_distance([0.0, 0.0]), p.robot_radius_m + p.lane_margin_m);
         for i in i0..=i1 {
             for j in -j1..=j1 {
-                let [f, l] = at(i, j);
-                let outside = self.lane.as_ref().is_some_and(|lane| {
-                    let band = (lane.half_width_m - body).max(0.0).max(lane.left_m.abs());
-                    let (s, c) = lane.angle_rad.sin_cos();
-                    (lane.left_m - f * s + l * c).abs() > band
-                });
-                if outside || self.door_wall_distance([f, l]) < within(door0, body) {
+                let cell = at(i, j);
+                let outside = lane.is_some_and(|(offset, band)| offset(cell).abs() > band);
+                if outside || self.door_wall_distance(cell) < door {
                     cost[index(i, j)] = BLOCKED_COST;
                 }
             }
