@@ -14,7 +14,9 @@
 //!    ([`memory::ObstacleMemory::centring`]), while its straight path is free; where it is not,
 //!    it follows the cheapest way the footprint fits through the memory's grid
 //!    ([`memory::ObstacleMemory::plan_heading`]; with `planner` off, or where the way does not
-//!    leave the robot's cell, the free heading nearest the goal, [`memory::ObstacleMemory::steer`]);
+//!    leave the robot's cell, the free heading nearest the goal, [`memory::ObstacleMemory::steer`]).
+//!    With `planner` on, the way is found first and the spot turn turns to where it leads, so
+//!    the two never turn the robot opposite ways;
 //! 6. the stopping gate caps the speed to what stops short of the memory's cells ([`Ahead`]);
 //! 7. the fuzzy core ([`fusion`]): `rules/mofis/avoidance.toml` turns the threats into a speed
 //!    factor and an avoidance turn, `rules/mofis/fusion.toml` weighs avoidance against the goal,
@@ -36,6 +38,8 @@ pub mod guard;
 pub mod memory;
 pub mod spot;
 pub mod stall;
+#[cfg(test)]
+mod tests;
 
 pub use fusion::{Ahead, Avoidance, Fusion, MofisOutput, load_default, stop_speed};
 pub use spot::SpotTurn;
@@ -337,7 +341,7 @@ impl Mofis {
         Ok(Self {
             memory: ObstacleMemory::new(params.memory, half_fov, calib.mount.z_m),
             stall: StallRecovery::new(params.stall, can_reverse),
-            spot_turn: SpotTurn::new(&params),
+            spot_turn: SpotTurn::new(&params, limits.max_turn_rate),
             escape: Escape::new(params.escape),
             last_setpoint: BodyVelocity::ZERO,
             fusion: Fusion::load(params.clone(), limits)?,
@@ -449,33 +453,53 @@ impl Mofis {
             }
             Some(_) => goal,
         };
-        // a goal far off the heading is turned to on the spot first
         let memory = &self.memory;
-        let goal = self.spot_turn.apply(goal, || memory.free_distance(goal.angle_rad, lookahead) >= lookahead);
-        // turns on the spot keep their angle; driving picks a free heading
-        let steered = match goal.velocity > 0.0 {
+        let counted = self.params.guard_cells();
+        let centred =
+            |angle: f64| angle + memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
+        let steer = |angle: f64| memory.steer(angle, lookahead, STEER_MAX_RAD, STEER_STEP_RAD);
+        // what PAFSIS asked for, before any turn on the spot
+        let asked_mps = goal.velocity;
+        let (goal, steered) = match self.params.planner {
+            false => {
+                // a goal far off the heading is turned to on the spot first; turns on the spot
+                // keep their angle, driving picks a free heading
+                let goal = self
+                    .spot_turn
+                    .apply(goal, frame_dt, || memory.free_distance(goal.angle_rad, lookahead) >= lookahead);
+                let steered = match goal.velocity > 0.0 {
+                    true => Goal { angle_rad: steer(centred(goal.angle_rad)), ..goal },
+                    false => goal,
+                };
+                (goal, steered)
+            }
             true => {
-                let centred = goal.angle_rad
-                    + self.memory.centring(CENTRE_WINDOW_M, CENTRE_REACH_M, CENTRE_LOOKAHEAD_M, CENTRE_MAX_RAD);
-                // the planner where the straight path is not free: of what the steering avoids,
-                // or of what the guard counts (the wall band's cells and faded ones too)
-                let counted = self.params.guard_cells();
-                let steer = || self.memory.steer(centred, lookahead, STEER_MAX_RAD, STEER_STEP_RAD);
-                let angle_rad = match self.params.planner {
-                    false => steer(),
-                    true if self.memory.free_in_lane(centred, lookahead) >= lookahead
-                        && self.memory.heading_free(centred, lookahead, &counted) >= lookahead =>
-                    {
-                        centred
-                    }
-                    true => {
-                        let target = PlanTarget { bearing_rad: centred, distance_m: PLAN_REACH_M.min(stop_ahead) };
-                        self.memory.plan_heading(target, &counted).unwrap_or_else(steer)
+                // the way first, then the spot turn to where it leads: turning on the spot to
+                // the goal while the way led elsewhere turned the robot back and forth in front
+                // of a box. The straight path is taken where it is free of what the steering
+                // avoids and of what the guard counts (the wall band's cells and faded ones too)
+                let aim = |angle: f64| match memory.free_in_lane(angle, lookahead) >= lookahead
+                    && memory.heading_free(angle, lookahead, &counted) >= lookahead
+                {
+                    true => angle,
+                    false => {
+                        let target = PlanTarget { bearing_rad: angle, distance_m: PLAN_REACH_M.min(stop_ahead) };
+                        memory.plan_heading(target, &counted).unwrap_or_else(|| steer(angle))
                     }
                 };
-                Goal { angle_rad, ..goal }
+                // the spot turn is decided on the goal's own bearing: the centring is measured
+                // across the robot's heading, and swung as much as the turn while it turned
+                let aimed = match goal.velocity > 0.0 {
+                    true => Goal { angle_rad: aim(goal.angle_rad), ..goal },
+                    false => goal,
+                };
+                let goal = Goal { velocity: self.spot_turn.apply(aimed, frame_dt, || true).velocity, ..goal };
+                let steered = match goal.velocity > 0.0 {
+                    true => Goal { angle_rad: aim(centred(goal.angle_rad)), ..goal },
+                    false => Goal { angle_rad: aimed.angle_rad, ..goal },
+                };
+                (goal, steered)
             }
-            false => goal,
         };
         // the distance ahead: the free path along the heading in the memory (the TPO's wall
         // distance is one frame's guess; the memory has what was seen solid, over frames), and
@@ -503,6 +527,12 @@ impl Mofis {
             self.fusion.step_guarded(&view, other.as_ref(), Some(ahead), &steered, frame_dt, Some(&arc_free))?;
         self.last_setpoint = output.setpoint;
         match turn_away {
+            // with the planner, a turn on the spot longer than a full circle is a standstill:
+            // where no way leads on, the way's first step swings as the robot turns, and turns
+            // that undo each other would hold it there
+            None if self.params.planner && self.spot_turn.overlong() => {
+                self.escape.observe(&Goal { velocity: asked_mps, ..goal }, output.setpoint.v, frame_dt)
+            }
             None => self.escape.observe(&goal, output.setpoint.v, frame_dt),
             Some(_) => self.escape.reset_standstill(),
         }

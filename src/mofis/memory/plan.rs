@@ -25,6 +25,10 @@ const NEAR_COST: f64 = 3.0;
 /// A metre left between the way's end and the target costs this many metres of free travel: a
 /// detour up to this many times the progress it makes is worth taking.
 const LEFT_WEIGHT: f64 = 2.0;
+/// A way that brings the robot less than this much nearer the target (or half the distance to
+/// it, when nearer) leads nowhere: it has no heading. Its first steps only pick among the cells
+/// around the robot, and they swing from one side to the other as the robot turns.
+const MIN_PROGRESS_M: f64 = 0.3;
 
 /// Where the way should end, for [`ObstacleMemory::plan_heading`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -37,7 +41,8 @@ pub struct PlanTarget {
 
 impl ObstacleMemory {
     /// The heading to drive to follow the cheapest way toward `target` (rad, robot frame, +
-    /// left), or `None` when the way does not leave the robot's cell ([`plan_way`](Self::plan_way)).
+    /// left), or `None` when the way does not leave the robot's cell or leads no nearer the
+    /// target ([`plan_way`](Self::plan_way)).
     pub fn plan_heading(&self, target: PlanTarget, guard: &GuardCells) -> Option<f64> {
         self.plan_way(target, guard).aim.map(|[f, l]| l.atan2(f))
     }
@@ -156,6 +161,11 @@ impl ObstacleMemory {
                 }
             }
         }
+        let left = |k: usize| {
+            let [f, l] = at((k / nj) as i32 + i0, (k % nj) as i32 - j1);
+            (goal[0] - f).hypot(goal[1] - l)
+        };
+        let leads = left(start) - left(end) >= MIN_PROGRESS_M.min(0.5 * left(start));
         let mut way = Vec::new();
         let mut k = end;
         while k != start {
@@ -177,7 +187,7 @@ impl ObstacleMemory {
                 let (a, b) = ((i as f64 * t).round() as i32, (j as f64 * t).round() as i32);
                 cost[index(a, b)] <= dearest + 1e-9
             });
-            if seen {
+            if seen && leads {
                 aim = Some(at(i, j));
             }
         }
@@ -200,6 +210,6 @@ pub struct Way {
     /// The centres of its cells after the robot's own, in order, robot frame (forward, left),
     /// m; empty when it does not leave the robot's cell.
     pub cells: Vec<[f64; 2]>,
-    /// The point the robot aims at; `None` when the way is empty.
+    /// The point the robot aims at; `None` when the way is empty or leads no nearer the target.
     pub aim: Option<[f64; 2]>,
 }

@@ -61,6 +61,25 @@ fn with_no_way_through_the_way_ends_short_of_what_blocks_it() {
 }
 
 #[test]
+fn a_way_that_leads_no_nearer_the_target_has_no_heading() {
+    // the box fills the corridor 0.6 m ahead: the footprint and its clearance fit 0.2 m
+    // further at most, less than the progress a way must make to be followed
+    let mut m = memory();
+    boxed(&mut m, 0.6, -0.9, 0.9);
+    m.set_lane(Some(Lane { left_m: 0.0, angle_rad: 0.0, half_width_m: 1.0 }));
+    let target = PlanTarget { bearing_rad: 0.0, distance_m: 3.0 };
+    let way = m.plan_way(target, &counted());
+    let end = *way.cells.last().expect("a way toward the box");
+    assert!(end[0] < 0.3, "{end:?}");
+    assert_eq!((way.aim, m.plan_heading(target, &counted())), (None, None));
+    // with the box 1.5 m ahead the way makes progress, and is followed
+    let mut m = memory();
+    boxed(&mut m, 1.5, -0.9, 0.9);
+    m.set_lane(Some(Lane { left_m: 0.0, angle_rad: 0.0, half_width_m: 1.0 }));
+    assert!(m.plan_heading(target, &counted()).is_some_and(|h| h.abs() < 0.1));
+}
+
+#[test]
 fn a_robot_inside_the_clearance_still_finds_its_way_out() {
     // a box 0.2 m ahead, across the heading: every cell near the robot is blocked, and the
     // way still leaves, back and round
