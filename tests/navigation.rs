@@ -941,35 +941,40 @@ mod mofis {
     #[test]
     fn a_goal_far_off_is_turned_to_on_the_spot_until_nearly_ahead() {
         use flownav::mofis::SpotTurn;
+        const FRAME_S: f64 = 1.0 / 30.0;
         // blind_turn_start_rad 0.2, blind_turn_stop_rad 0.6
-        let mut spot = SpotTurn::new(&MofisParams::default());
-        assert_eq!(spot.apply(goal(0.3, 0.5), || true), goal(0.3, 0.5), "0.5 rad off: driving");
-        assert_eq!(spot.apply(goal(0.3, -0.7), || true), goal(0.0, -0.7), "0.7 rad off: on the spot");
+        let mut spot = SpotTurn::new(&MofisParams::default(), 1.0);
+        assert_eq!(spot.apply(goal(0.3, 0.5), FRAME_S, || true), goal(0.3, 0.5), "0.5 rad off: driving");
+        assert_eq!(spot.apply(goal(0.3, -0.7), FRAME_S, || true), goal(0.0, -0.7), "0.7 rad off: on the spot");
         // the turn lasts until the goal is within 0.2 rad, where the same goal was driven before
         for angle in [-0.5, -0.3, -0.21] {
-            assert_eq!(spot.apply(goal(0.3, angle), || true), goal(0.0, angle), "{angle}");
+            assert_eq!(spot.apply(goal(0.3, angle), FRAME_S, || true), goal(0.0, angle), "{angle}");
         }
-        assert_eq!(spot.apply(goal(0.3, -0.15), || true), goal(0.3, -0.15));
+        assert_eq!(spot.apply(goal(0.3, -0.15), FRAME_S, || true), goal(0.3, -0.15));
         assert!(!spot.turning());
-        assert_eq!(spot.apply(goal(0.3, 0.5), || true), goal(0.3, 0.5), "a new turn starts only at 0.6 rad");
+        assert_eq!(spot.apply(goal(0.3, 0.5), FRAME_S, || true), goal(0.3, 0.5), "a new turn starts only at 0.6 rad");
         // reversing (the stall recovery) and a finished mission pass unchanged and end the turn
-        spot.apply(goal(0.3, 1.0), || true);
-        assert_eq!(spot.apply(goal(-0.1, 1.0), || true), goal(-0.1, 1.0));
+        spot.apply(goal(0.3, 1.0), FRAME_S, || true);
+        assert_eq!(spot.apply(goal(-0.1, 1.0), FRAME_S, || true), goal(-0.1, 1.0));
         assert!(!spot.turning());
         let done = Goal { status: GoalStatus::Arrived, ..goal(0.3, 1.0) };
-        assert_eq!(spot.apply(done, || true), done);
+        assert_eq!(spot.apply(done, FRAME_S, || true), done);
         // toward a blocked way no turn starts (it would undo the avoidance turn away from it);
         // a turn under way goes on, blocked or not
-        assert_eq!(spot.apply(goal(0.3, 0.9), || false), goal(0.3, 0.9), "blocked: no turn on the spot");
+        assert_eq!(spot.apply(goal(0.3, 0.9), FRAME_S, || false), goal(0.3, 0.9), "blocked: no turn on the spot");
         assert!(!spot.turning());
-        assert_eq!(spot.apply(goal(0.3, 0.9), || true), goal(0.0, 0.9));
-        assert_eq!(spot.apply(goal(0.3, 0.8), || false), goal(0.0, 0.8), "under way: goes on");
+        assert_eq!(spot.apply(goal(0.3, 0.9), FRAME_S, || true), goal(0.0, 0.9));
+        assert_eq!(spot.apply(goal(0.3, 0.8), FRAME_S, || false), goal(0.0, 0.8), "under way: goes on");
 
         // through MOFIS: something 1.4 m away, 0.25 rad left, that avoidance would turn right
         // from; the turn on the spot has the goal's turn alone
         let mut m = mofis();
         let out = m
-            .step(&obstacle(1.4, 0.25), &SpotTurn::new(&MofisParams::default()).apply(goal(0.3, 0.7), || true), SETTLED)
+            .step(
+                &obstacle(1.4, 0.25),
+                &SpotTurn::new(&MofisParams::default(), 1.0).apply(goal(0.3, 0.7), FRAME_S, || true),
+                SETTLED,
+            )
             .unwrap();
         assert_eq!(out.weight, 0.0);
         assert!(out.setpoint.v == 0.0 && (out.setpoint.omega - 1.0).abs() < 1e-9, "{out:?}");
