@@ -494,11 +494,13 @@ impl Mofis {
                     false => goal,
                 };
                 let goal = Goal { velocity: self.spot_turn.apply(aimed, frame_dt, || true).velocity, ..goal };
-                let steered = match goal.velocity > 0.0 {
-                    true => Goal { angle_rad: aim(centred(goal.angle_rad)), ..goal },
-                    false => Goal { angle_rad: aimed.angle_rad, ..goal },
+                // driving: the way again from the centred bearing, where the centring moves it
+                // (a search is 0.5 ms)
+                let angle_rad = match (goal.velocity > 0.0, centred(goal.angle_rad)) {
+                    (true, c) if c != goal.angle_rad => aim(c),
+                    _ => aimed.angle_rad,
                 };
-                (goal, steered)
+                (goal, Goal { angle_rad, ..goal })
             }
         };
         // the distance ahead: the free path along the heading in the memory (the TPO's wall
