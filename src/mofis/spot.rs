@@ -11,7 +11,9 @@ use crate::pafsis::{Goal, GoalStatus};
 /// memory: a free heading far off the goal is steered with avoidance as before (doing the same
 /// for it drove the robot into the jambs of D9). Without this, a robot that avoidance had
 /// turned 1.2 rad away from its goal stood still in a cycle: a cell entered the avoidance band
-/// whenever it turned toward the goal, and the avoidance turned it back.
+/// whenever it turned toward the goal, and the avoidance turned it back. With MOFIS's planner
+/// the goal it is given is the way's heading instead, which keeps the footprint clear of the
+/// jambs (`Mofis::step`).
 #[derive(Clone, Copy, Debug)]
 pub struct SpotTurn {
     start_rad: f64,
