@@ -496,9 +496,12 @@ impl Mofis {
                 let goal = Goal { velocity: self.spot_turn.apply(aimed, frame_dt, || true).velocity, ..goal };
                 // driving: the way again from the centred bearing, where the centring moves it
                 // (a search is 0.5 ms)
-                let angle_rad = match (goal.velocity > 0.0, centred(goal.angle_rad)) {
-                    (true, c) if c != goal.angle_rad => aim(c),
-                    _ => aimed.angle_rad,
+                let angle_rad = match goal.velocity > 0.0 {
+                    true => match centred(goal.angle_rad) {
+                        c if c != goal.angle_rad => aim(c),
+                        _ => aimed.angle_rad,
+                    },
+                    false => aimed.angle_rad,
                 };
                 (goal, Goal { angle_rad, ..goal })
             }

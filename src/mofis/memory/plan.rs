@@ -161,11 +161,11 @@ impl ObstacleMemory {
                 }
             }
         }
-        let left = |k: usize| {
-            let [f, l] = at((k / nj) as i32 + i0, (k % nj) as i32 - j1);
-            (goal[0] - f).hypot(goal[1] - l)
-        };
-        let leads = left(start) - left(end) >= MIN_PROGRESS_M.min(0.5 * left(start));
+        let cell = |k: usize| ((k / nj) as i32 + i0, (k % nj) as i32 - j1);
+        // the robot's own cell is at the origin, the target's distance from it
+        let (i, j) = cell(end);
+        let [f, l] = at(i, j);
+        let leads = target.distance_m - (goal[0] - f).hypot(goal[1] - l) >= MIN_PROGRESS_M.min(0.5 * target.distance_m);
         let mut way = Vec::new();
         let mut k = end;
         while k != start {
@@ -174,11 +174,11 @@ impl ObstacleMemory {
         }
         way.reverse();
         // the straight segment from the robot to a cell of the way, in half-cell steps, costs
-        // no more anywhere than the way does up to that cell
-        let cell = |k: usize| ((k / nj) as i32 + i0, (k % nj) as i32 - j1);
+        // no more anywhere than the way does up to that cell (none is aimed at on a way that
+        // leads nowhere)
         let mut dearest = cost[start];
         let mut aim = None;
-        for &k in &way {
+        for &k in way.iter().filter(|_| leads) {
             dearest = dearest.max(cost[k]);
             let (i, j) = cell(k);
             let n = 2 * i.abs().max(j.abs());
@@ -187,7 +187,7 @@ impl ObstacleMemory {
                 let (a, b) = ((i as f64 * t).round() as i32, (j as f64 * t).round() as i32);
                 cost[index(a, b)] <= dearest + 1e-9
             });
-            if seen && leads {
+            if seen {
                 aim = Some(at(i, j));
             }
         }
