@@ -1,5 +1,5 @@
 //! The serial skeleton both base drivers (FNP/1 and Kobuki) share; the protocol-specific part
-//! is a [`Protocol`] (frames out, bytes in, the handshake), everything else is said once here:
+//! is a `Protocol` (frames out, bytes in, the handshake), everything else is said once here:
 //!
 //! - opening the port ([`Connector`], [`SerialConnector`]) with errors a user can act on
 //!   ([`SerialBaseError`]);
@@ -7,7 +7,7 @@
 //!   rate, replacing a non-zero command that was not refreshed within the command timeout by the
 //!   protocol's zero command;
 //! - decoded events queued for [`MotorBase::next_event`](crate::MotorBase::next_event), link
-//!   counters in [`Shared`];
+//!   counters in `Shared` (read out as [`LinkStats`]);
 //! - declaring the link down when the port fails or nothing arrives for the silence timeout,
 //!   then reopening it with exponential [`Backoff`] and repeating the handshake, the base kept
 //!   stopped until the caller commands again;

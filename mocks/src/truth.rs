@@ -34,6 +34,13 @@ use serde::{Deserialize, Serialize};
 /// The distance reported (along the heading, from the optical centre): wall — to the wall
 /// straight ahead; door — to the door's centre; corner — to the edge; corridor — to the
 /// nearest visible point of its side walls.
+///
+/// [`RANGE_M`]: tpo::RANGE_M
+/// [`WALL_FACING_MAX_RAD`]: tpo::WALL_FACING_MAX_RAD
+/// [`CORNER_MIN_ANGLE_RAD`]: tpo::CORNER_MIN_ANGLE_RAD
+/// [`DOOR_MIN_WIDTH_M`]: tpo::DOOR_MIN_WIDTH_M
+/// [`CORRIDOR_OPEN_AHEAD_M`]: tpo::CORRIDOR_OPEN_AHEAD_M
+/// [`CORRIDOR_PARALLEL_MAX_RAD`]: tpo::CORRIDOR_PARALLEL_MAX_RAD
 pub mod tpo {
     /// A wall or door faces the camera when its normal is within ±45° of the heading.
     pub const WALL_FACING_MAX_RAD: f64 = std::f64::consts::FRAC_PI_4;

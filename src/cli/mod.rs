@@ -46,7 +46,7 @@ pub struct Exit {
     pub message: String,
 }
 
-/// The exit status for an error out of [`run`].
+/// The exit status for an error out of [`run`](fn@run).
 pub fn exit_code(err: &anyhow::Error) -> u8 {
     err.downcast_ref::<Exit>().map_or(1, |e| e.code)
 }

@@ -21,7 +21,8 @@ pub struct Args {
     /// World file (TOML, see docs/sim-world.md); default: the built-in office.
     #[arg(long, value_name = "FILE")]
     pub world: Option<PathBuf>,
-    /// Replace the corridor obstacles by a random placement with this seed (the world's [random]).
+    /// Replace the corridor obstacles by a random placement with this seed (the world's
+    /// `[random]`).
     #[arg(long, value_name = "SEED")]
     pub obstacle_seed: Option<u64>,
     /// Single view: robot pose `x,y,yaw_deg` (default: the world's start).

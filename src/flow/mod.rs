@@ -15,6 +15,8 @@
 //! | [`gpu`] | [`gpu::GpuFlow`], the wgpu compute-shader engine (same results as the CPU engine) |
 //! | `backend` | [`create_engine`]: `flow.backend` = auto / cpu / gpu, with a [`BackendReport`] |
 //! | [`reference`] | [`reference::reference_flow`], the contract written as plainly as possible |
+//!
+//! [`reference`]: mod@reference
 
 mod backend;
 pub mod cpu;

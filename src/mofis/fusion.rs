@@ -250,7 +250,7 @@ impl Fusion {
     /// `arc_free(curvature, reach, aside)` is how far the robot can drive along an arc of that
     /// curvature (1/m, + = left) before its footprint meets something, up to `reach` m,
     /// counting only what is out of the camera's view when `aside`
-    /// ([`memory::ObstacleMemory::arc_free`]).
+    /// ([`ObstacleMemory::arc_free`](super::memory::ObstacleMemory::arc_free)).
     pub fn step_guarded(
         &mut self,
         perception: &Perception,

@@ -360,12 +360,16 @@ fn bent(bins: &[Bin], free: u64) -> bool {
     runs <= 3 || (var > 0.0 && (runs as f64 - mean) / var.sqrt() <= BEND_MAX_Z)
 }
 
-/// See [`bent`].
+/// The corner test (`bent`): points bend when at least half of them lie more than this
+/// fraction of their tolerance off one line through them all and the signs of those residuals,
+/// in bin order, form few runs (Wald–Wolfowitz z ≤ [`BEND_MAX_Z`]).
 pub const BEND_SIGNIFICANT: f64 = 0.3;
 pub const BEND_MAX_Z: f64 = -1.2;
 
-/// See [`split`]. Each wall of a corner must span at least [`CORNER_SIDE_M`] (a near corner
-/// shows little of each wall) and the two hold at least 8 points together.
+/// A corner (`split`: two planes that meet at [`SPLIT_MIN_DEG`] or more) replaces the
+/// sequential fit only when it lowers the MSAC cost (an unexplained point costs 1) by at least
+/// this much. Each wall of a corner must span at least [`CORNER_SIDE_M`] (a near corner shows
+/// little of each wall) and the two hold at least 8 points together.
 pub const SPLIT_MARGIN: f64 = 1.0;
 /// ... or this much when the two walls cross behind an occluder between them.
 pub const SPLIT_MARGIN_BEHIND: f64 = 0.5;
@@ -434,7 +438,7 @@ fn run_width(pts: &[(usize, [f64; 2])], [start, end]: [usize; 2]) -> f64 {
 ///   beside a wall must stay clearly nearer than the surface behind it, or it is no obstacle.
 /// - `Shape`: the TPO's class, the corner's vertex (its distance) and whether the pair places
 ///   a TPO at all. A run that lies on one line with farther points at a grazing angle
-///   ([`grazing_wall`]) is a stretch of wall between door openings and stays in the fit:
+///   (`grazing_wall`) is a stretch of wall between door openings and stays in the fit:
 ///   without it a corridor near its doors loses both walls and reads `none`. Taking it for a
 ///   wall costs at most a wrong class, never an obstacle unseen.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -451,7 +455,7 @@ pub enum Reading {
 /// one side only: see [`edge_candidates`] and [`TpoModel::fit`]. An occluder in front of
 /// another leaves it out of the runs, and the one behind is looked for again. In the
 /// [`Reading::Shape`], a run that is a stretch of wall seen at a grazing angle
-/// ([`grazing_wall`]) is no occluder.
+/// (`grazing_wall`) is no occluder.
 pub fn occluders(bins: &[Bin], reading: Reading) -> u64 {
     // an occluder may stand in front of another (a noisy bin in front of a person): the runs
     // are cut again without the occluders found so far, until no new one appears
@@ -565,7 +569,7 @@ fn occluders_once(bins: &[Bin], reading: Reading) -> u64 {
 /// (a door's jamb); [`TpoModel::fit`] tells them apart. Nearer runs at both edges are the two
 /// sides of an opening (a door's wall, a corridor's walls), not occluders: none is returned.
 /// In the [`Reading::Shape`], a run that is a stretch of wall seen at a grazing angle
-/// ([`grazing_wall`]) is no candidate.
+/// (`grazing_wall`) is no candidate.
 pub fn edge_candidates(bins: &[Bin], reading: Reading) -> [u64; 2] {
     let (pts, runs) = runs(bins);
     if runs.len() < 2 {
@@ -636,8 +640,10 @@ fn partner(bins: &[Bin], free: u64, first: &Line) -> Option<Line> {
     (hi - lo >= PARTNER_M).then_some(Line { centre, dir: first.dir, inliers: mask, extent: [lo, hi] })
 }
 
-/// See [`partner`]: the first plane runs within this angle of the heading, degrees; the partner
-/// holds at least this many points spanning at least this length, m.
+/// The partner of a corridor's wall (`partner`: a parallel wall on the other side of the
+/// camera, of which only a few bins may be in view) is looked for only when the first plane
+/// runs within this angle of the heading, degrees; the partner holds at least this many points
+/// spanning at least this length, m.
 pub const PARTNER_MAX_DEG: f64 = 25.0;
 pub const PARTNER_POINTS: usize = 2;
 pub const PARTNER_M: f64 = 0.5;
@@ -659,7 +665,7 @@ impl TpoModel {
     }
 
     /// The fit [`TpoModel::fit`] makes, for the TPO's shape: a stretch of wall seen at a
-    /// grazing angle ([`grazing_wall`]: between two door openings, or beside one at the image
+    /// grazing angle (`grazing_wall`: between two door openings, or beside one at the image
     /// edge) is a wall, not an occluder.
     pub fn fit_shape(bins: &[Bin]) -> Self {
         Self::fit_masked(bins, Self::masks(bins, Reading::Shape))

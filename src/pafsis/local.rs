@@ -87,8 +87,8 @@ pub struct ExpectedDoor {
     /// Where it lies along the leg, m from the leg's start, when the map says so.
     pub at_m: Option<f64>,
     /// Whether the door is only beside the leg (a door place the leg's edges do not stop at,
-    /// [`add_doors_beside`]): it is matched only where it is seen in a side wall, whose side
-    /// tells it from the door facing it.
+    /// placed along the leg by its position on the map: `add_doors_beside`): it is matched only
+    /// where it is seen in a side wall, whose side tells it from the door facing it.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub beside: bool,
 }
@@ -1020,7 +1020,8 @@ impl Pafsis {
         self.map.tolerance.window_m(length_m) + came_from.map_or(0.0, |w| 0.5 * w)
     }
 
-    /// How many legs ended on the wall seen ahead so far ([`Pafsis::wall_ahead`]).
+    /// How many legs ended on the wall seen ahead so far (the wall-ahead fix,
+    /// `Pafsis::wall_ahead`).
     pub fn walls_ahead_matched(&self) -> u64 {
         self.walls_ahead_matched
     }

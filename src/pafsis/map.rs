@@ -78,7 +78,7 @@ pub enum Until {
 pub enum Action {
     /// Leave a room straight through its door into the corridor (`length_m` from the room
     /// place to the corridor place in front of the door). With the door's opening
-    /// ([`Opening`]), the robot keeps its footprint inside it while it steers.
+    /// ([`Action::opening`]), the robot keeps its footprint inside it while it steers.
     ExitRoom {
         door: String,
         length_m: f64,

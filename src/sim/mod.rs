@@ -89,7 +89,7 @@ pub enum SimError {
     Control(#[from] RuntimeError),
 }
 
-/// Everything a run needs. [`SimSetup::office`] gives the defaults of `flownav sim`.
+/// Everything a run needs. [`SimSetup::new`] gives the defaults of `flownav sim`.
 pub struct SimSetup {
     /// The world, with its obstacles already placed (e.g. by `World::with_random_obstacles`).
     pub world: World,
@@ -231,7 +231,7 @@ pub struct SimSummary {
     /// Frames whose side walls corrected PAFSIS's heading or offset ([`crate::pafsis::walls`]).
     pub wall_fixes: u64,
     /// Keyframe pairs whose flow corrected PAFSIS's heading, and the odometry's turn scale
-    /// error and bend (rad per metre) learned from them ([`crate::pafsis::odometry_calibration`]).
+    /// error and bend (rad per metre) learned from them ([`crate::odometry_calibration`]).
     pub flow_yaw_fixes: u64,
     pub odometry_scale: f64,
     pub odometry_bend_rad_m: f64,
@@ -268,7 +268,7 @@ pub struct Contact {
     pub object: String,
     /// Where on the rim it touched, rad from the heading (+ = left).
     pub at_rad: f64,
-    /// What the obstacle memory held of the object then ([`contact::classify`]).
+    /// What the obstacle memory held of the object then (`contact::classify`).
     pub memory: ContactMemory,
 }
 

@@ -17,9 +17,10 @@
 //!    engine, so sub-pixel values are identical, not just close.
 //!
 //! Buffers, bind groups and pipelines are created once per frame size (pipelines once per
-//! block/radius shape) and reused. [`GpuFlow::compute`] (the [`FlowEngine`](super::FlowEngine) method) waits for
-//! its own result; [`GpuFlow::compute_pipelined`] submits a pair and returns the previous pair's
-//! field, so the GPU computes frame n+1 while the CPU consumes frame n (one frame of latency).
+//! block/radius shape) and reused. [`GpuFlow::compute`](super::FlowEngine::compute) (the
+//! [`FlowEngine`](super::FlowEngine) method) waits for its own result;
+//! [`GpuFlow::compute_pipelined`] submits a pair and returns the previous pair's field, so the
+//! GPU computes frame n+1 while the CPU consumes frame n (one frame of latency).
 //!
 //! | module | owns |
 //! |---|---|

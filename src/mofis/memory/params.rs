@@ -40,17 +40,19 @@ pub struct MemoryParams {
     /// Clearance kept to either side of the robot's path, m.
     pub path_margin_m: f64,
     /// Width of the side band beyond the path, beside the robot (it narrows to nothing
-    /// [`SIDE_REACH_M`] ahead), m: occupied cells in it are a threat too, reported farther away
-    /// the farther into it (by [`SIDE_FADE_M`] at its outer edge), so the threat fades instead
-    /// of switching off when a cell leaves the path. 0: the path alone.
+    /// [`SIDE_REACH_M`](super::SIDE_REACH_M) ahead), m: occupied cells in it are a threat too,
+    /// reported farther away the farther into it (by [`SIDE_FADE_M`](super::SIDE_FADE_M) at
+    /// its outer edge), so the threat fades instead of switching off when a cell leaves the
+    /// path. 0: the path alone.
     pub side_margin_m: f64,
     /// Cells behind the robot's origin by more than this are ignored for the threat, m.
     pub behind_m: f64,
     /// Clearance kept to the corridor's walls as the map gives them ([`crate::pafsis::Lane`]),
     /// m: less than `path_margin_m`, since the dead-reckoned position drifts.
     pub lane_margin_m: f64,
-    /// With the corridor from the map ([`ObstacleMemory::set_lane`]), occupied cells less than
-    /// this far inside its walls (or beyond them) are taken for the walls, which the lane
+    /// With the corridor from the map
+    /// ([`ObstacleMemory::set_lane`](super::ObstacleMemory::set_lane)), occupied cells less
+    /// than this far inside its walls (or beyond them) are taken for the walls, which the lane
     /// already keeps the robot from: they neither block a heading, nor count as a threat, nor
     /// centre the robot (the lane's walls do that). Block-matching depth at a door jamb's edge
     /// or a wall seen at a grazing angle puts such cells 0.1–0.26 m inside the corridor, where,
@@ -59,7 +61,8 @@ pub struct MemoryParams {
     /// this is not seen (set 0 where such things are; docs/navigation.md). 0: off.
     pub wall_band_m: f64,
     /// With the wall band on, a lane's wall closer than this to the robot's footprint (by dead
-    /// reckoning) is a threat on its side ([`ObstacleMemory::threat_sides`]), so MOFIS turns
+    /// reckoning) is a threat on its side
+    /// ([`ObstacleMemory::threat_sides`](super::ObstacleMemory::threat_sides)), so MOFIS turns
     /// the robot back in, m; it also has to cover the dead-reckoned position's lateral drift.
     /// 0: off.
     pub wall_threat_m: f64,
