@@ -167,7 +167,7 @@ impl Default for MofisParams {
             guard_brake: true,
             guard_cluster: true,
             guard_min_cells: 2,
-            planner: false,
+            planner: true,
         }
     }
 }
