@@ -9,7 +9,7 @@
 //!
 //! Each keyframe pair driven forward gives the flow's measurement of `ψ_true − ψ`
 //! ([`crate::offis::Offis::measure_yaw`]); `a` and `b` are its least-squares fit over all the
-//! pairs so far, pulled toward 0 by a prior worth 50 pairs (`PRIOR_PAIRS`). The pipeline
+//! pairs so far, pulled toward 0 by a prior worth `PRIOR_PAIRS` pairs. The pipeline
 //! applies the fit to every odometry sample before anything uses it ([`crate::step`]): de-rotation,
 //! the obstacle memory's motion and dead reckoning all see the corrected turn, and turns on the
 //! spot, whose flow cannot be measured as well (the camera swings round the axle), get the

@@ -58,9 +58,9 @@ impl WallSighting {
         (p[0] * self.dir[1] - p[1] * self.dir[0]).abs() / r
     }
 
-    /// The centres of the wall's openings that are a door's width (0.55–1.1 m jamb to jamb,
-    /// `DOOR_WIDTH_M`), ahead, and seen steeply enough to be placed along the wall (the ray to
-    /// the centre meets the wall at 14° or more, `DOOR_MIN_SIN`), m.
+    /// The centres of the wall's openings that are a door's width (jamb to jamb,
+    /// `DOOR_WIDTH_M`), ahead, and seen steeply enough to be placed along the wall (the sine of
+    /// the angle at which the ray to the centre meets the wall, `DOOR_MIN_SIN`), m.
     pub fn door_openings(&self) -> impl Iterator<Item = [f64; 2]> + '_ {
         self.openings.iter().flatten().filter_map(|[a, b]| {
             let width = (a[0] - b[0]).hypot(a[1] - b[1]);

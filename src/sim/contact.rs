@@ -32,8 +32,8 @@ const AT_CONTACT_M: f64 = 0.3;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ContactMemory {
-    /// An occupied cell on the touched part of the object (within 0.3 m of the point of the
-    /// rim that touched, `AT_CONTACT_M`): the avoidance knew it and still drove there.
+    /// An occupied cell on the touched part of the object (within `AT_CONTACT_M` of the point of
+    /// the rim that touched): the avoidance knew it and still drove there.
     Occupied,
     /// Cells on the touched part that the footprint guard counts, none occupied.
     Guarded,
