@@ -1,9 +1,14 @@
 #!/usr/bin/env python3
 """Compare sets of `flownav sim` runs: each set's rates with their 95 % intervals, and each set
-against the first on the seeds they share (Fisher's exact test), so that a design is not kept
-for a difference the scatter makes on its own.
+against the first on the seeds they share, so that a design is not kept for a difference the
+scatter makes on its own.
 
     bench/compare_runs.py BASE.jsonl OTHER.jsonl [MORE.jsonl ...]
+
+On the shared seeds: Fisher's exact test of the two rates, and, since the same seed run with two
+designs is a pair, McNemar's exact test on the seeds where the two differ (it sees a difference
+that the scatter between seeds hides from Fisher's) and the paired difference in mission time
+with its 95 % interval.
 
 Each file holds the JSON lines of `flownav sim --seeds ...` (bench/nav_report.sh writes them);
 lines without a `seed` (the aggregate) are skipped. Per set it prints the runs, reached with its
@@ -72,6 +77,35 @@ def fisher(a, n1, b, n2):
     return sum(p(x) for x in range(max(0, k - n2), min(k, n1) + 1) if p(x) <= p0 * (1 + 1e-9))
 
 
+def mcnemar(only_a, only_b):
+    """Two-sided exact McNemar test on paired runs: `only_a` seeds where the event happened in
+    the first set only, `only_b` in the second only (a binomial test of the discordant pairs)."""
+    n = only_a + only_b
+    if n == 0:
+        return 1.0
+    k = min(only_a, only_b)
+    return min(1.0, 2 * binom_cdf(k, n, 0.5))
+
+
+def paired_mean(diffs):
+    """Mean of paired differences with its 95 % interval (normal approximation: for 30 or more
+    pairs)."""
+    n = len(diffs)
+    m = sum(diffs) / n
+    if n < 2:
+        return m, float("nan"), float("nan")
+    sd = (sum((d - m) ** 2 for d in diffs) / (n - 1)) ** 0.5
+    half = 1.96 * sd / n**0.5
+    return m, m - half, m + half
+
+
+def paired(base, runs, shared, event):
+    """The seeds where `event(run)` holds in `runs` only and in `base` only, with McNemar's p."""
+    only_o = [s for s in shared if event(runs[s]) and not event(base[s])]
+    only_b = [s for s in shared if event(base[s]) and not event(runs[s])]
+    return f"{len(only_o)} seeds only here {only_o}, {len(only_b)} only in the first {only_b} (McNemar p = {mcnemar(len(only_o), len(only_b)):.2f})"
+
+
 def rate(k, n):
     lo, hi = clopper_pearson(k, n)
     return f"{k} / {n} ({100 * lo:.1f}–{100 * hi:.1f} %)"
@@ -125,6 +159,12 @@ def main(paths):
             f"runs with a contact {len(o['touched'])} against {len(b['touched'])} "
             f"(p = {fisher(len(o['touched']), n, len(b['touched']), n):.2f})"
         )
+        # the same seeds run twice are pairs: the paired tests see what the scatter between
+        # seeds hides from the unpaired ones
+        m, lo, hi = paired_mean([(runs[s].get("time_s") or 0) - (base[s].get("time_s") or 0) for s in shared])
+        print(f"  paired: reached: {paired(base, runs, shared, lambda r: bool(r.get('reached')))}")
+        print(f"  paired: a contact: {paired(base, runs, shared, lambda r: bool(r.get('collisions')))}")
+        print(f"  paired: mission time {m:+.1f} s ({lo:+.1f} to {hi:+.1f} s, 95 %)")
 
 
 if __name__ == "__main__":

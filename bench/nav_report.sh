@@ -12,7 +12,8 @@
 #   SIZE=320x180 bench/nav_report.sh     # another render size (default: the simulator's)
 #   CONFIG=/tmp/design.toml bench/nav_report.sh   # a partial config over the defaults (a design to screen)
 #
-# bench/compare_runs.py BASE.jsonl OTHER.jsonl compares two sets with intervals and Fisher's test.
+# bench/compare_runs.py BASE.jsonl OTHER.jsonl compares two sets with intervals, Fisher's test and,
+# on the seeds they share, McNemar's test and the paired mission-time difference.
 set -eu
 cd "$(dirname "$0")/.."
 cargo build --release --quiet
