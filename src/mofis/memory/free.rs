@@ -127,7 +127,7 @@ impl ObstacleMemory {
         let held: Vec<(i32, i32)> = self
             .cells
             .iter()
-            .filter(|&(&key, c)| c.confirmed && c.held >= guard.min_evidence && close(key))
+            .filter(|&(&key, c)| c.confirmed && c.evidence >= guard.min_evidence && close(key))
             .map(|(&key, _)| key)
             .filter(|&key| solid(key))
             .collect();

@@ -47,17 +47,13 @@ impl ObstacleMemory {
                     seen[k].iter().any(|&(r, up)| r > range + p.cell_m * 2.0 && h + (up - h) * range / r < c.top_m)
                 });
                 let out_of_view = in_view.is_none();
-                // what is in view but not seen through has not been seen free: for the guard
-                // (`guard_hold_in_view_m`) it fades as what is out of view does
-                let (k, k_held) = match (c.contact, through) {
-                    (true, _) => (k_contact, k_contact),
-                    (false, true) => (k_view, k_view),
-                    (false, false) if out_of_view => (k_out, k_out),
-                    (false, false) => (k_aside, if range < p.guard_hold_in_view_m { k_out } else { k_aside }),
+                c.evidence *= match (c.contact, through) {
+                    (true, _) => k_contact,
+                    (false, true) => k_view,
+                    (false, false) if out_of_view => k_out,
+                    (false, false) => k_aside,
                 };
-                c.evidence *= k;
-                c.held *= k_held;
-                range <= p.max_range_m && c.evidence.max(c.held) >= 0.05
+                range <= p.max_range_m && c.evidence >= 0.05
             });
         }
         self.touched.clear();
@@ -77,15 +73,9 @@ impl ObstacleMemory {
         for cell in self.touched.chunk_by(|a, b| a.0 == b.0) {
             let (key, up, _) = cell[0];
             let vote: f64 = cell.iter().map(|t| t.2).sum();
-            let c = self.cells.entry(key).or_insert(Cell {
-                evidence: 0.0,
-                contact: false,
-                confirmed: false,
-                top_m: up,
-                held: 0.0,
-            });
+            let c =
+                self.cells.entry(key).or_insert(Cell { evidence: 0.0, contact: false, confirmed: false, top_m: up });
             c.evidence = (c.evidence + vote.min(1.0)).min(self.params.max_evidence);
-            c.held = (c.held + vote.min(1.0)).min(self.params.max_evidence);
             c.confirmed |= c.evidence >= self.params.occupied;
             c.top_m = c.top_m.max(up);
         }
@@ -107,14 +97,8 @@ impl ObstacleMemory {
             let b = if n == 0 { 0.0 } else { half_arc_rad.abs() * k as f64 / n as f64 };
             let key = self.cell_at(r * b.cos(), r * b.sin());
             // as tall as anything: no ray clears a contact
-            let cell = Cell {
-                evidence: p.max_evidence,
-                contact: true,
-                confirmed: true,
-                top_m: f64::INFINITY,
-                held: p.max_evidence,
-            };
-            self.cells.insert(key, cell);
+            self.cells
+                .insert(key, Cell { evidence: p.max_evidence, contact: true, confirmed: true, top_m: f64::INFINITY });
         }
     }
 }

@@ -98,10 +98,6 @@ struct Cell {
     /// The highest point that voted for the cell, m above the floor: a ray from the camera that
     /// passes over the cell lower than this would have hit what is there.
     top_m: f64,
-    /// The evidence the footprint guard counts: `evidence`, except that with
-    /// [`MemoryParams::guard_hold_in_view_m`] a near cell in view that the camera does not see through
-    /// fades as one out of view does.
-    held: f64,
 }
 
 /// A cell `side_margin_m` beyond the robot's path is reported this much farther away than it is,

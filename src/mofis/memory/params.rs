@@ -14,15 +14,6 @@ pub struct MemoryParams {
     /// Evidence half-life of a cell in view that the step did not measure (a close textureless
     /// face, a bearing without reliable flow, a robot not driving forward), s.
     pub half_life_aside_s: f64,
-    /// For the footprint guard, a cell in view nearer than this (m) that the camera does not
-    /// see through fades as one out of view does (per `out_half_life_m`, `out_half_life_rad`
-    /// and `out_half_life_s`), not at `half_life_aside_s`: no frame has shown it free. A robot
-    /// creeping and turning beside an obstacle measures nothing (its pairs are not
-    /// [`measurable`](super::ObstacleMemory::measurable)), and the obstacle faded from the
-    /// guard while it was still in view. The steering, the threats and the stopping gate keep
-    /// the faster fade: a phantom held there stands a robot still, the guard only bends its
-    /// turn. 0: off.
-    pub guard_hold_in_view_m: f64,
     /// Evidence half-life of a cell out of view (beside or behind the robot), per distance
     /// driven, m ...
     pub out_half_life_m: f64,
@@ -111,7 +102,6 @@ impl Default for MemoryParams {
             cell_m: 0.1,
             half_life_view_s: 0.5,
             half_life_aside_s: 4.0,
-            guard_hold_in_view_m: 0.0,
             out_half_life_m: 1.5,
             out_half_life_rad: 6.0,
             out_half_life_s: 60.0,
@@ -147,7 +137,6 @@ impl MemoryParams {
             ("cell_m", pos(self.cell_m) && self.cell_m <= 1.0, "must be in (0, 1] m"),
             ("half_life_view_s", pos(self.half_life_view_s), "must be a positive time in s"),
             ("half_life_aside_s", pos(self.half_life_aside_s), "must be a positive time in s"),
-            ("guard_hold_in_view_m", nonneg(self.guard_hold_in_view_m), "must be a distance ≥ 0 in m (0: off)"),
             ("out_half_life_m", pos(self.out_half_life_m), "must be a positive distance in m"),
             ("out_half_life_rad", pos(self.out_half_life_rad), "must be a positive angle in rad"),
             ("out_half_life_s", pos(self.out_half_life_s), "must be a positive time in s"),

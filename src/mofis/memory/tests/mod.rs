@@ -28,7 +28,7 @@ fn guard(min_evidence: f64, cluster: bool) -> GuardCells {
 /// Puts a cell at (`forward`, `left`) of the robot with `evidence`, confirmed or not.
 fn put(m: &mut ObstacleMemory, forward: f64, left: f64, evidence: f64, confirmed: bool) {
     let key = m.cell_at(forward, left);
-    m.cells.insert(key, Cell { evidence, contact: false, confirmed, top_m: 0.5, held: evidence });
+    m.cells.insert(key, Cell { evidence, contact: false, confirmed, top_m: 0.5 });
 }
 
 #[test]
@@ -64,7 +64,7 @@ fn the_guard_sees_an_arc_reach_a_lingering_cell() {
     assert!(!m.cells.values().any(|c| c.confirmed), "one vote");
     step(&mut m, STILL, 0.0, &[pt(0.35, 0.15)]);
     assert!(m.cells.values().all(|c| c.confirmed));
-    m.cells.values_mut().for_each(|c| (c.evidence, c.held) = (0.4, 0.4));
+    m.cells.values_mut().for_each(|c| c.evidence = 0.4);
     assert!(m.arc_free(0.0, reach, &guard(min, false), false) < reach);
     // `aside`: only the cells out of the camera's view count, the brake's query. The cell at
     // (0.35, 0.15) is 0.41 rad off the heading, in view (±0.47 rad); one at (0.25, 0.15),
@@ -383,49 +383,3 @@ fn a_heading_is_free_as_the_straight_arc_turned_to_it() {
 
 mod paths;
 mod planning;
-
-#[test]
-fn the_guard_can_hold_what_is_in_view_until_it_is_seen_free() {
-    let (reach, min) = (0.4, 0.3);
-    let hold = MemoryParams { guard_hold_in_view_m: 0.5, ..memory().params };
-    // a confirmed cell ahead, 0.15 m left, in view (0.41 rad off the heading, of ±0.47)
-    let fresh = |params: MemoryParams| {
-        let mut m = ObstacleMemory::new(params, 26.7f64.to_radians(), 0.4);
-        put(&mut m, 0.35, 0.15, 1.6, true);
-        m
-    };
-    // 12 s standing, measuring nothing (a robot turning in place, say): three of the in-view
-    // half-lives (4 s) take it to 0.2, under the guard's 0.3, and the straight arc is free;
-    // holding it, it fades by the out-of-view 60 s, to 1.6 · 2^(−0.2) = 1.39, and the footprint
-    // reaches its centre after 0.35 − √(0.22² − 0.15²) = 0.189 m, at the tenth 2 cm step
-    // (holding only within 0.3 m, the cell 0.38 m away fades as before)
-    let near_only = MemoryParams { guard_hold_in_view_m: 0.3, ..hold };
-    for (params, held) in [(memory().params, false), (near_only, false), (hold, true)] {
-        let mut m = fresh(params);
-        for _ in 0..120 {
-            m.update(STILL, 0.1, &[], false);
-        }
-        let cell = *m.cells.values().next().unwrap();
-        assert!((cell.evidence - 0.2).abs() < 1e-9, "{}", cell.evidence);
-        let free = m.arc_free(0.0, reach, &guard(min, false), false);
-        match held {
-            false => assert_eq!(free, reach),
-            true => {
-                assert!((cell.held - 1.6 * 2f64.powf(-0.2)).abs() < 1e-9, "{}", cell.held);
-                assert!((free - 0.18).abs() < 1e-9, "{free}");
-            }
-        }
-    }
-    // seen through (a surface measured 1.5 m away on its bearing, by a ray under its top), it
-    // fades at the in-view 0.5 s for the guard too: 2 s take it to 0.1
-    let mut m = fresh(hold);
-    let key = m.cell_at(0.35, 0.15);
-    let bearing = 0.15f64.atan2(0.35);
-    let beyond = pt(1.5 * bearing.cos(), 1.5 * bearing.sin());
-    for _ in 0..20 {
-        m.update(STILL, 0.1, &[beyond], true);
-    }
-    let held = m.cells[&key].held;
-    assert!((held - 0.1).abs() < 1e-9, "{held}");
-    assert_eq!(m.arc_free(0.0, reach, &guard(min, false), false), reach);
-}
