@@ -103,7 +103,8 @@ def paired(base, runs, shared, event):
     """The seeds where `event(run)` holds in `runs` only and in `base` only, with McNemar's p."""
     only_o = [s for s in shared if event(runs[s]) and not event(base[s])]
     only_b = [s for s in shared if event(base[s]) and not event(runs[s])]
-    return f"{len(only_o)} seeds only here {only_o}, {len(only_b)} only in the first {only_b} (McNemar p = {mcnemar(len(only_o), len(only_b)):.2f})"
+    p = mcnemar(len(only_o), len(only_b))
+    return f"{len(only_o)} seeds only here {only_o}, {len(only_b)} only in the first {only_b} (McNemar p = {p:.2f})"
 
 
 def rate(k, n):
@@ -159,8 +160,6 @@ def main(paths):
             f"runs with a contact {len(o['touched'])} against {len(b['touched'])} "
             f"(p = {fisher(len(o['touched']), n, len(b['touched']), n):.2f})"
         )
-        # the same seeds run twice are pairs: the paired tests see what the scatter between
-        # seeds hides from the unpaired ones
         m, lo, hi = paired_mean([(runs[s].get("time_s") or 0) - (base[s].get("time_s") or 0) for s in shared])
         print(f"  paired: reached: {paired(base, runs, shared, lambda r: bool(r.get('reached')))}")
         print(f"  paired: a contact: {paired(base, runs, shared, lambda r: bool(r.get('collisions')))}")

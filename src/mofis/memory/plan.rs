@@ -56,8 +56,8 @@ impl ObstacleMemory {
     /// counts ([`GuardCells`]), where it would leave the lane's band
     /// ([`lane_free_distance`](Self::lane_free_distance)'s) or meet the door's wall; what the
     /// robot is already that near blocks only the cells nearer to it still, so the robot can
-    /// always drive away from what it is beside. Blocked cells cost `BLOCKED_COST` (metres of free travel) a
-    /// metre. A cell nearer an occupied cell than the path margin
+    /// always drive away from what it is beside. Blocked cells cost `BLOCKED_COST` (metres of
+    /// free travel) a metre. A cell nearer an occupied cell than the path margin
     /// (`robot_radius_m + path_margin_m`) costs more the nearer. The way ends at the cell that
     /// minimises its cost plus `LEFT_WEIGHT` times the straight distance from there to the
     /// target, so a target with no way to it is approached as near as the cells let.
