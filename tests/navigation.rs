@@ -163,14 +163,16 @@ impl Walk {
                 return (goal.status, events);
             }
             let omega = (1.5 * goal.angle_rad).clamp(-1.0, 1.0);
+            // PAFSIS gives the leg's speed; this robot slows for the turn, as MOFIS does
+            let speed = goal.velocity * goal.angle_rad.cos().max(0.0);
             self.heading += omega * dt;
-            self.x += goal.velocity * dt * self.heading.cos();
-            self.y += goal.velocity * dt * self.heading.sin();
-            self.path_m += goal.velocity * dt;
+            self.x += speed * dt * self.heading.cos();
+            self.y += speed * dt * self.heading.sin();
+            self.path_m += speed * dt;
             if self.y.abs() < 1.0 && self.heading.sin().abs() < 0.5 {
                 self.max_off_centre_m = self.max_off_centre_m.max(self.y.abs());
             }
-            let v = goal.velocity * self.odo_scale;
+            let v = speed * self.odo_scale;
             let raw = BodyVelocity::new(v, omega + self.omega_bias + self.bend_rad_m * v);
             odo = if self.flow_yaw { self.calibration.apply(raw) } else { raw };
             pair[0] += omega * dt;
@@ -217,6 +219,24 @@ fn office_mission_arrives_in_front_of_d2() {
     let matched = events.iter().filter(|e| matches!(e, PafsisEvent::DoorMatched { .. })).count();
     assert_eq!(matched, 2, "D3 passed and D2 sighted: {events:#?}");
     assert!(!events.iter().any(|e| matches!(e, PafsisEvent::LandmarkMissed { .. })));
+}
+
+#[test]
+fn a_goal_behind_the_robot_keeps_the_legs_speed() {
+    // two robots at R9, one turned on the spot 2.8 rad away from the doorway leg: PAFSIS gives
+    // both the leg's speed: MOFIS turns, and slows for the turn
+    let map = office();
+    let (mut facing, mut turned) = (mission(&map, "R9:D2"), mission(&map, "R9:D2"));
+    let p = Perception::default();
+    let (mut ahead, mut behind) = (None, None);
+    for _ in 0..10 {
+        ahead = Some(facing.step(&p, BodyVelocity::ZERO, 0.05));
+        behind = Some(turned.step(&p, BodyVelocity::new(0.0, 5.6), 0.05));
+    }
+    let (ahead, behind) = (ahead.unwrap(), behind.unwrap());
+    assert!(ahead.angle_rad.abs() < 0.1 && ahead.velocity > 0.05, "{ahead:?}");
+    assert!(behind.angle_rad.abs() > 2.5, "{behind:?}");
+    assert_eq!(behind.velocity, ahead.velocity);
 }
 
 #[test]

@@ -38,8 +38,8 @@ pub struct EscapeParams {
     pub drive_m: f64,
     /// ... or for at most this long, s.
     pub timeout_s: f64,
-    /// The goal speed while escaping, at least, m/s (PAFSIS asks for none while its goal is
-    /// behind the robot).
+    /// The goal speed while escaping, at least, m/s (PAFSIS's leg speed comes down to a crawl
+    /// near the leg's end).
     pub speed_mps: f64,
 }
 

@@ -304,7 +304,10 @@ impl Fusion {
                 false => {
                     let off = goal.angle_rad.abs().max(omega.abs() / self.params.heading_gain);
                     let cap = ahead.map_or(f64::INFINITY, |a| a.stop_speed_mps);
-                    (goal.velocity * avoidance.speed * self.look_factor(off)).min(cap)
+                    // slowed by the cosine of the steered angle: what is left of the speed
+                    // along the heading the robot turns to (the goal's, or the way's)
+                    let along = goal.angle_rad.cos().max(0.0);
+                    (goal.velocity * along * avoidance.speed * self.look_factor(off)).min(cap)
                 }
             };
             BodyVelocity { v, omega }

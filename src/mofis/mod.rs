@@ -22,13 +22,14 @@
 //!    factor and an avoidance turn, `rules/mofis/fusion.toml` weighs avoidance against the goal,
 //!
 //!    ```text
-//!    v     = goal_velocity · speed
+//!    v     = goal_velocity · max(0, cos goal_angle) · speed
 //!    omega = (1 − weight) · heading_gain · goal_angle + weight · turn · max_turn_rate
 //!    ```
 //!
-//!    the footprint guard ([`guard`]) bends a command whose arc meets a remembered cell, and the
-//!    [`Limiter`](crate::control::Limiter) clamps the result to the configured speed, turn-rate
-//!    and acceleration limits.
+//!    with the steered goal angle (PAFSIS gives the leg's speed; what is left of it along the
+//!    heading the robot turns to is driven); the footprint guard ([`guard`]) bends a command
+//!    whose arc meets a remembered cell, and the [`Limiter`](crate::control::Limiter) clamps the
+//!    result to the configured speed, turn-rate and acceleration limits.
 //!
 //! Without perception ([`Mofis::fail_safe`]) the set-point is an immediate stop.
 

@@ -7,9 +7,14 @@ fn mofis(planner: bool) -> Mofis {
     Mofis::new(params, ControlLimits::default(), &Calibration::nominal_c310()).unwrap()
 }
 
-/// One step at a standstill with nothing seen, `goal_rad` off the heading, in `lane`.
+/// One step at a standstill with nothing seen, toward a goal that asks to drive `goal_rad` off
+/// the heading, in `lane`.
 fn step(m: &mut Mofis, goal_rad: f64, lane: Option<Lane>) -> MofisStep {
-    let goal = Goal { velocity: 0.3, angle_rad: goal_rad, status: GoalStatus::Active };
+    step_to(m, Goal { velocity: 0.3, angle_rad: goal_rad, status: GoalStatus::Active }, lane)
+}
+
+/// One step at a standstill with nothing seen, toward `goal`, in `lane`.
+fn step_to(m: &mut Mofis, goal: Goal, lane: Option<Lane>) -> MofisStep {
     let route = Route { lane, doorway: None, stop_ahead_m: None };
     let perception = Perception::default();
     let input = MofisInput {
@@ -57,4 +62,27 @@ fn with_the_planner_the_spot_turn_turns_where_the_way_leads_not_across_the_corri
     let (sin, cos) = aim.sin_cos();
     let edge = 1.0 - 0.18 - 0.1;
     assert!((1..=10).all(|k| (-0.4 + 0.1 * k as f64 * sin).abs() <= edge + 1e-9 && cos > 0.0), "{aim}");
+}
+
+#[test]
+fn a_way_that_first_leads_away_from_a_goal_behind_is_driven() {
+    // a wall of cells 0.5 m left of the robot from 0.5 m behind to 1 m ahead; the goal 1.9 rad
+    // to the left, behind the wall. The way goes round the wall's front end: a goal that asks
+    // to drive (PAFSIS's leg speed) is followed along it, forward; a turn (no speed) is turned
+    // to on the spot, into the wall's side
+    let wall: Vec<SurfacePoint> =
+        (0..=15).map(|k| SurfacePoint { forward: -0.5 + 0.1 * k as f64, left: 0.5, up: 0.5, radial_px: 3.0 }).collect();
+    let walled = || {
+        let mut m = mofis(true);
+        for _ in 0..3 {
+            m.memory.update(BodyVelocity::ZERO, 0.1, &wall, true);
+        }
+        m
+    };
+    let out = step(&mut walled(), 1.9, None);
+    assert!(out.steered.velocity > 0.0 && (-0.2..0.6).contains(&out.steered.angle_rad), "{:?}", out.steered);
+    let mut m = walled();
+    let out = step_to(&mut m, Goal { velocity: 0.0, angle_rad: 1.9, status: GoalStatus::Active }, None);
+    assert_eq!((out.steered.velocity, out.steered.angle_rad), (0.0, 1.9));
+    assert!(out.output.setpoint.omega > 0.0);
 }

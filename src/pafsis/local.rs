@@ -366,7 +366,8 @@ fn door_wall_beyond(map: &TopoMap, place: &str, heading_rad: f64) -> Option<f64>
 /// What the planner wants this step.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct Goal {
-    /// Goal-oriented velocity, m/s (≥ 0).
+    /// Goal-oriented velocity: the leg's speed, m/s (≥ 0), whatever the goal angle (MOFIS turns
+    /// toward the goal, or the way past what blocks it, and slows for the turn).
     pub velocity: f64,
     /// Goal-oriented angle: where the local goal lies relative to the heading, rad, + = left.
     pub angle_rad: f64,
@@ -1378,7 +1379,11 @@ impl Pafsis {
         // constant deceleration: v ∝ √remaining (a linear ramp, v ∝ remaining, approaches the
         // end exponentially: 8 s for the last metre at 0.35 m/s, against 2.4 s)
         let ramp = (remaining.max(0.0) / self.params.slow_radius_m).sqrt().clamp(self.params.min_speed_fraction, 1.0);
-        let velocity = if speed > 0.0 { speed * ramp * angle.cos().max(0.0) } else { 0.0 };
+        // the leg's speed whatever the heading: MOFIS turns to the goal, or to the way past what
+        // blocks it, and slows for the turn. Scaled by the goal angle's cosine it fell to 0 for a
+        // goal behind the robot, and a way past a box that first leads away from the goal could
+        // not be driven: the robot stood turning between the two
+        let velocity = if speed > 0.0 { speed * ramp } else { 0.0 };
         Goal { velocity, angle_rad: angle, status: self.status }
     }
 }
