@@ -892,15 +892,18 @@ mod mofis {
     #[test]
     fn no_obstacle_follows_the_goal() {
         let mut m = mofis();
-        // (0.15 rad: within the look-before-driving band, so at full speed)
+        // (0.15 rad: within the look-before-driving band, so the goal's speed along the heading)
         let out = m.step(&Perception::default(), &goal(0.35, 0.15), SETTLED).unwrap();
         assert_eq!(out.avoidance.speed, 1.0);
         assert_eq!(out.weight, 0.0);
-        assert!((out.setpoint.v - 0.35).abs() < 1e-9, "{:?}", out.setpoint);
+        assert!((out.setpoint.v - 0.35 * 0.15f64.cos()).abs() < 1e-9, "{:?}", out.setpoint);
         assert!((out.setpoint.omega - 1.5 * 0.15).abs() < 1e-9, "{:?}", out.setpoint);
         // A far obstacle aside changes nothing either.
         let out = m.step(&obstacle(4.0, 0.5), &goal(0.35, -0.2), SETTLED).unwrap();
-        assert!((out.setpoint.omega + 0.3).abs() < 1e-9 && (out.setpoint.v - 0.35).abs() < 1e-9, "{out:?}");
+        assert!(
+            (out.setpoint.omega + 0.3).abs() < 1e-9 && (out.setpoint.v - 0.35 * 0.2f64.cos()).abs() < 1e-9,
+            "{out:?}"
+        );
     }
 
     #[test]
@@ -948,11 +951,12 @@ mod mofis {
         };
         let straight = settle(0.0);
         assert!((straight.v - 0.3).abs() < 1e-9, "{straight:?}");
-        // 0.15 rad: a 0.225 rad/s turn, which the obstacle memory still measures in: full speed
-        assert!((settle(0.15).v - 0.3).abs() < 1e-9);
-        // 0.3 rad: 0.45 rad/s ÷ gain is 0.3 rad off → (0.6 − 0.3)/(0.6 − 0.2) = 3/4 of the speed
+        // 0.15 rad: a 0.225 rad/s turn, which the obstacle memory still measures in: the speed
+        // along the heading, cos 0.15 of it
+        assert!((settle(0.15).v - 0.3 * 0.15f64.cos()).abs() < 1e-9);
+        // 0.3 rad: 0.45 rad/s ÷ gain is 0.3 rad off → (0.6 − 0.3)/(0.6 − 0.2) = 3/4 of that
         let s = settle(-0.3);
-        assert!((s.v - 0.225).abs() < 1e-9 && (s.omega + 0.45).abs() < 1e-9, "{s:?}");
+        assert!((s.v - 0.225 * 0.3f64.cos()).abs() < 1e-9 && (s.omega + 0.45).abs() < 1e-9, "{s:?}");
         // beyond 0.6 rad: on the spot, at the turn-rate limit
         let s = settle(0.8);
         assert!(s.v.abs() < 1e-12 && (s.omega - 1.0).abs() < 1e-9, "{s:?}");
