@@ -7,8 +7,11 @@
 #   bench/nav_report.sh                  # seeds 0..100 (reporting); navigation is tuned on 100..199
 #   SEEDS=0..10 bench/nav_report.sh      # a quicker look
 #   OUT=/tmp/nav bench/nav_report.sh     # one file per set there (default: target/nav-report)
-#   SETS="lshape hall" bench/nav_report.sh   # some of: office lshape narrow hall office-map dense
-#                                        # (dense: the crowded office, a stress test; not in the default)
+#   SETS="lshape hall" bench/nav_report.sh   # some of: office lshape narrow hall office-map dense mirror
+#                                        # (dense: the crowded office, a stress test; mirror: the
+#                                        # office and the L-shaped world mirrored by
+#                                        # bench/mirror_world.py, every side swapped and the
+#                                        # corner a right turn; neither in the default)
 #   SIZE=320x180 bench/nav_report.sh     # another render size (default: the simulator's)
 #   CONFIG=/tmp/design.toml bench/nav_report.sh   # a partial config over the defaults (a design to screen)
 #
@@ -35,6 +38,14 @@ for w in lshape narrow hall; do
     case $w in lshape) m=R5:D10 ;; narrow) m=R5:D4 ;; hall) m=R10:D2 ;; esac
     if want "$w"; then run "$w" --world "mocks/worlds/$w.toml" --map "maps/$w.toml" --mission "$m"; fi
 done
+if want mirror; then
+    for w in office lshape; do
+        case $w in office) m=R9:D2 ;; lshape) m=R5:D10 ;; esac
+        python3 bench/mirror_world.py "mocks/worlds/$w.toml" >"$out/$w-mirror-world.toml"
+        python3 bench/mirror_world.py "maps/$w.toml" >"$out/$w-mirror-map.toml"
+        run "$w-mirror" --world "$out/$w-mirror-world.toml" --map "$out/$w-mirror-map.toml" --mission "$m"
+    done
+fi
 if want dense; then run dense --world mocks/worlds/office-dense.toml --map maps/office.toml --mission R9:D2; fi
 if want office-map; then
     for f in 1.05 0.95; do
