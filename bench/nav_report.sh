@@ -33,23 +33,24 @@ run() { # NAME, then the flags of the set
     "$bin" ${CONFIG:+--config "$CONFIG"} sim --seeds "$seeds" --jobs "$jobs" --no-log --quiet --start-error "$start" ${SIZE:+--size "$SIZE"} "$@" >"$out/$name.jsonl" || true
     tail -n 1 "$out/$name.jsonl"
 }
-if want office; then run office --mission R9:D2; fi
+mission() { # each world's mission: out of a room, along its corridors, to a door place
+    case $1 in office) echo R9:D2 ;; lshape) echo R5:D10 ;; narrow) echo R5:D4 ;; hall) echo R10:D2 ;; esac
+}
+if want office; then run office --mission "$(mission office)"; fi
 for w in lshape narrow hall; do
-    case $w in lshape) m=R5:D10 ;; narrow) m=R5:D4 ;; hall) m=R10:D2 ;; esac
-    if want "$w"; then run "$w" --world "mocks/worlds/$w.toml" --map "maps/$w.toml" --mission "$m"; fi
+    if want "$w"; then run "$w" --world "mocks/worlds/$w.toml" --map "maps/$w.toml" --mission "$(mission "$w")"; fi
 done
 if want mirror; then
     for w in office lshape; do
-        case $w in office) m=R9:D2 ;; lshape) m=R5:D10 ;; esac
         python3 bench/mirror_world.py "mocks/worlds/$w.toml" >"$out/$w-mirror-world.toml"
         python3 bench/mirror_world.py "maps/$w.toml" >"$out/$w-mirror-map.toml"
-        run "$w-mirror" --world "$out/$w-mirror-world.toml" --map "$out/$w-mirror-map.toml" --mission "$m"
+        run "$w-mirror" --world "$out/$w-mirror-world.toml" --map "$out/$w-mirror-map.toml" --mission "$(mission "$w")"
     done
 fi
-if want dense; then run dense --world mocks/worlds/office-dense.toml --map maps/office.toml --mission R9:D2; fi
+if want dense; then run dense --world mocks/worlds/office-dense.toml --map maps/office.toml --mission "$(mission office)"; fi
 if want office-map; then
     for f in 1.05 0.95; do
         python3 bench/scale_map.py maps/office.toml "$f" --anchor R9 >"$out/office-x$f.toml"
-        run "office-map-x$f" --map "$out/office-x$f.toml" --mission R9:D2
+        run "office-map-x$f" --map "$out/office-x$f.toml" --mission "$(mission office)"
     done
 fi
